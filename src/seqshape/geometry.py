@@ -1,0 +1,107 @@
+"""Planar poses and rigid transforms.
+
+Convention (fixed once, used everywhere): a pose is ``(x, y, z, yaw)``, the position of a
+vehicle's canonical origin (centre of its 3D bounding box) in the sensor frame and its heading
+about +z, counter-clockwise seen from above (x forward, y left, z up). Points map as
+
+    p_sensor = R_z(yaw) @ p_canonical + (x, y, z).
+
+>>> import numpy as np
+>>> p = np.array([[1.0, 0.0, 0.0]])
+>>> canonical_to_sensor(p, np.array([10.0, 0.0, 0.0, np.pi / 2])).round(6)
+array([[10.,  1.,  0.]])
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def wrap_angle(a):
+    """Wrap angles to [-pi, pi).
+
+    >>> float(wrap_angle(3 * np.pi / 2))
+    -1.5707963267948966
+    """
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def yaw_to_rotmat(yaw) -> np.ndarray:
+    """Rotation matrices about +z, shape ``(..., 3, 3)`` for ``yaw`` of shape ``(...)``."""
+    yaw = np.asarray(yaw, dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    z, o = np.zeros_like(yaw), np.ones_like(yaw)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1),
+                     np.stack([z, z, o], -1)], -2)
+
+
+def pose_to_matrix(pose) -> np.ndarray:
+    """Homogeneous canonical-to-sensor transforms ``(..., 4, 4)`` from poses ``(..., 4)``."""
+    pose = np.asarray(pose, dtype=np.float64)
+    m = np.zeros(pose.shape[:-1] + (4, 4))
+    m[..., :3, :3] = yaw_to_rotmat(pose[..., 3])
+    m[..., :3, 3] = pose[..., :3]
+    m[..., 3, 3] = 1.0
+    return m
+
+
+def matrix_to_pose(m) -> np.ndarray:
+    """Poses ``(..., 4)`` from homogeneous transforms (the rotation must be about z)."""
+    m = np.asarray(m, dtype=np.float64)
+    yaw = np.arctan2(m[..., 1, 0], m[..., 0, 0])
+    return np.concatenate([m[..., :3, 3], yaw[..., None]], -1)
+
+
+def canonical_to_sensor(points, pose) -> np.ndarray:
+    """Map ``(N, 3)`` canonical points to the sensor frame with one pose ``(4,)``.
+
+    The dtype of ``points`` is kept (float32 in, float32 out).
+    """
+    points = np.asarray(points)
+    pose = np.asarray(pose, dtype=np.float64)
+    r = yaw_to_rotmat(pose[3])
+    out = points.astype(np.float64) @ r.T + pose[:3]
+    return out.astype(points.dtype if points.dtype.kind == "f" else np.float64)
+
+
+def sensor_to_canonical(points, pose) -> np.ndarray:
+    """Inverse of :func:`canonical_to_sensor`.
+
+    >>> p = np.random.default_rng(0).normal(size=(5, 3))
+    >>> q = np.array([1.0, -2.0, 0.5, 0.3])
+    >>> bool(np.allclose(sensor_to_canonical(canonical_to_sensor(p, q), q), p))
+    True
+    """
+    points = np.asarray(points)
+    pose = np.asarray(pose, dtype=np.float64)
+    r = yaw_to_rotmat(pose[3])
+    out = (points.astype(np.float64) - pose[:3]) @ r
+    return out.astype(points.dtype if points.dtype.kind == "f" else np.float64)
+
+
+def compose(a, b) -> np.ndarray:
+    """Pose of ``b`` expressed through ``a``: ``T(compose(a, b)) = T(a) @ T(b)``."""
+    return matrix_to_pose(pose_to_matrix(a) @ pose_to_matrix(b))
+
+
+def invert(pose) -> np.ndarray:
+    """The inverse transform as a pose: ``compose(pose, invert(pose)) == 0``."""
+    return matrix_to_pose(np.linalg.inv(pose_to_matrix(pose)))
+
+
+def box_corners(size, pose=None) -> np.ndarray:
+    """The 8 corners ``(8, 3)`` of a box of ``size`` (l, w, h), in the canonical frame or posed.
+
+    Order: the four bottom corners counter-clockwise from front-left, then the four top ones.
+    """
+    l, w, h = (float(v) / 2 for v in size)
+    xy = np.array([[l, w], [-l, w], [-l, -w], [l, -w]])
+    c = np.concatenate([np.c_[xy, np.full(4, -h)], np.c_[xy, np.full(4, h)]])
+    return c if pose is None else canonical_to_sensor(c, pose)
+
+
+def points_in_box(points, size, pose, margin: float = 0.0) -> np.ndarray:
+    """Boolean mask of the ``(N, 3)`` sensor-frame points inside a posed box (+ margin, m)."""
+    local = sensor_to_canonical(np.asarray(points, dtype=np.float64), pose)
+    half = np.asarray(size, dtype=np.float64) / 2 + margin
+    return np.all(np.abs(local) <= half, axis=1)
