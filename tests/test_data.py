@@ -1,0 +1,90 @@
+import json
+
+import numpy as np
+import pytest
+
+from seqshape.data import Track, TrackDataset, load_track, save_track, write_dataset
+from seqshape.errors import DataError
+
+
+def make_track(track_id="t0", n_frames=5, split="train", seed=0, with_complete=True):
+    rng = np.random.default_rng(seed)
+    pts = [rng.normal(size=(int(n), 3)).astype(np.float32) for n in rng.integers(0, 40, n_frames)]
+    pts[1] = np.zeros((0, 3), np.float32)  # an empty frame
+    poses = np.c_[rng.normal(size=(n_frames, 3)), rng.uniform(-3, 3, n_frames)]
+    complete = rng.normal(size=(64, 3)).astype(np.float32) if with_complete else None
+    return Track(track_id, pts, poses, complete, [4.5, 1.8, 1.5], np.arange(n_frames) * 0.1,
+                 {"split": split, "mesh_id": "box"})
+
+
+def assert_tracks_equal(a, b):
+    assert a.track_id == b.track_id and len(a) == len(b)
+    for p, q in zip(a.points, b.points):
+        assert p.dtype == q.dtype == np.float32
+        np.testing.assert_array_equal(p, q)
+    np.testing.assert_array_equal(a.poses, b.poses)
+    np.testing.assert_array_equal(a.timestamps, b.timestamps)
+    np.testing.assert_array_equal(a.size, b.size)
+    if a.complete is None:
+        assert b.complete is None
+    else:
+        np.testing.assert_array_equal(a.complete, b.complete)
+    assert a.meta == b.meta
+
+
+@pytest.mark.parametrize("with_complete", [True, False])
+def test_track_round_trip(tmp_path, with_complete):
+    tr = make_track(with_complete=with_complete)
+    save_track(tmp_path / "a.npz", tr)
+    back = load_track(tmp_path / "a.npz")
+    assert_tracks_equal(tr, back)
+    assert back.points[1].shape == (0, 3)
+    assert list(tmp_path.iterdir()) == [tmp_path / "a.npz"]  # no temp files left behind
+
+
+def test_complete_in_frame_uses_pose():
+    tr = make_track()
+    np.testing.assert_allclose(
+        tr.complete_in_frame(2)[0],
+        tr.complete[0] @ np.array([[np.cos(tr.poses[2, 3]), -np.sin(tr.poses[2, 3]), 0],
+                                   [np.sin(tr.poses[2, 3]), np.cos(tr.poses[2, 3]), 0],
+                                   [0, 0, 1]]).T + tr.poses[2, :3], rtol=1e-5, atol=1e-5)
+
+
+def test_track_rejects_mismatched_lengths():
+    with pytest.raises(ValueError, match="frames"):
+        Track("x", [np.zeros((1, 3))], np.zeros((2, 4)), None, [1, 1, 1], [0.0])
+
+
+def test_dataset_len_index_split(tmp_path):
+    tracks = [make_track(f"t{i}", split="val" if i % 3 == 0 else "train", seed=i) for i in range(7)]
+    ds = write_dataset(tmp_path / "ds", tracks, config={"preset": "test"})
+    assert len(ds) == 7
+    assert_tracks_equal(ds.get("t4"), tracks[4])
+    val = ds.split("val")
+    assert sorted(val.track_ids) == ["t0", "t3", "t6"]
+    assert all(t.split == "val" for t in val)
+    assert len(ds.split("train")) == 4
+    with pytest.raises(DataError, match="no tracks in split"):
+        ds.split("test")
+    with pytest.raises(IndexError):
+        ds[7]
+    m = json.loads((tmp_path / "ds" / "manifest.json").read_text())
+    assert m["format"] == "seqshape-tracks" and m["version"] == 1
+
+
+def test_bad_files_give_clear_errors(tmp_path):
+    with pytest.raises(DataError, match="missing manifest"):
+        TrackDataset(tmp_path)
+    (tmp_path / "manifest.json").write_text("{not json")
+    with pytest.raises(DataError, match="manifest.json: invalid JSON"):
+        TrackDataset(tmp_path)
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"garbage")
+    with pytest.raises(DataError, match="bad.npz: unreadable"):
+        load_track(bad)
+    np.savez(tmp_path / "foreign.npz", x=np.zeros(3))
+    with pytest.raises(DataError, match="not a seqshape track"):
+        load_track(tmp_path / "foreign.npz")
+    with pytest.raises(DataError, match="file not found"):
+        load_track(tmp_path / "nope.npz")
