@@ -1,0 +1,344 @@
+"""Masks as COCO RLE, and the KINS (amodal) and COCO (instance) JSON files of a sequence.
+
+Masks are boolean ``(H, W)`` arrays (row = image v, column = image u). RLEs are COCO compressed
+RLE dicts ``{"size": [H, W], "counts": str}`` (``counts`` decoded to ASCII so that they go into
+JSON as they are).
+
+KINS file (``amodal/SSSS.json``), one per sequence::
+
+    {"images": [{"id", "file_name": "SSSS/FFFFFF.png", "height", "width", "frame"}],
+     "categories": [{"id", "name"}],
+     "annotations": [{"id", "image_id", "category_id", "track_id",
+                      "a_segm", "i_segm",      # amodal / visible (inmodal) mask, RLE
+                      "a_bbox", "i_bbox",      # [x, y, w, h] of those masks, pixels
+                      "a_area", "i_area",      # pixel counts of those masks
+                      "oco_id", "ico_id",      # occlusion cluster and order, see below
+                      "iscrowd"}]}
+
+Occlusion order (:func:`occlusion_order`): in one image, two instances are linked when their
+amodal masks overlap (one of them necessarily hides the other there); the connected components
+of that graph are the occlusion clusters. ``oco_id`` is the 1-based id of the instance's
+cluster, clusters numbered by the depth of their nearest member (front first); ``ico_id`` is
+the 1-based rank of the instance inside its cluster, sorted by depth from front (1) to back.
+An instance overlapping nobody is alone in its cluster with ``ico_id`` 1. Depth is whatever
+the producer sorts by (e.g. the distance of each vehicle's nearest visible point); ties are
+broken by annotation order.
+
+COCO instance file (``instances_2d/SSSS.json``): ``images`` and ``categories`` as above and
+``annotations`` with ``id``, ``image_id``, ``category_id``, ``segmentation`` (RLE, or polygons
+``[[x1, y1, x2, y2, ...], ...]`` when read), ``bbox`` ``[x, y, w, h]``, ``area``, ``score``,
+``iscrowd`` and an optional ``track_id``.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from seqshape._io import atomic_write_json
+from seqshape.errors import DataError, require
+
+#: KINS categories (ids as in the KINS release).
+KINS_CATEGORIES = [
+    {"id": 1, "name": "cyclist"}, {"id": 2, "name": "pedestrian"}, {"id": 4, "name": "car"},
+    {"id": 5, "name": "tram"}, {"id": 6, "name": "truck"}, {"id": 7, "name": "van"},
+    {"id": 8, "name": "misc"},
+]
+
+IMAGE_KEYS = ("id", "file_name", "height", "width")
+KINS_KEYS = ("id", "image_id", "category_id", "a_segm", "i_segm", "a_bbox", "i_bbox",
+             "a_area", "i_area", "oco_id", "ico_id")
+COCO_KEYS = ("id", "image_id", "category_id", "segmentation")
+
+
+def _mask_api():
+    return require("pycocotools.mask", "COCO RLE masks", "pycocotools")
+
+
+# ----------------------------------------------------------------------------- masks
+
+
+def mask_to_rle(mask) -> dict:
+    """COCO compressed RLE ``{"size": [H, W], "counts": str}`` of a boolean (H, W) mask."""
+    mask = np.asarray(mask)
+    if mask.ndim != 2:
+        raise ValueError(f"mask must be 2-D (H, W), got shape {mask.shape}")
+    rle = _mask_api().encode(np.asfortranarray(mask.astype(np.uint8)))
+    return {"size": [int(rle["size"][0]), int(rle["size"][1])],
+            "counts": rle["counts"].decode("ascii")}
+
+
+def rle_to_mask(rle: dict) -> np.ndarray:
+    """Boolean (H, W) mask of a COCO RLE (compressed ``str``/``bytes`` or uncompressed list)."""
+    mu = _mask_api()
+    h, w = (int(v) for v in rle["size"])
+    counts = rle["counts"]
+    if isinstance(counts, list):
+        obj = mu.frPyObjects({"size": [h, w], "counts": counts}, h, w)
+    else:
+        obj = {"size": [h, w], "counts": counts.encode("ascii") if isinstance(counts, str)
+               else counts}
+    return _decode(obj)
+
+
+def _decode(rle: dict) -> np.ndarray:
+    with warnings.catch_warnings():  # pycocotools' __array__ is not numpy-2 clean
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return _mask_api().decode(rle).astype(bool)
+
+
+def segm_to_mask(segm, height: int, width: int) -> np.ndarray:
+    """Boolean (height, width) mask of a COCO segmentation: RLE dict or list of polygons."""
+    mu = _mask_api()
+    if isinstance(segm, dict):
+        mask = rle_to_mask(segm)
+        if mask.shape != (height, width):
+            raise ValueError(f"RLE size {list(mask.shape)} != image size {[height, width]}")
+        return mask
+    polys = [list(map(float, p)) for p in segm]
+    if not polys:
+        return np.zeros((height, width), dtype=bool)
+    if any(len(p) < 6 or len(p) % 2 for p in polys):
+        raise ValueError("polygons need an even number (>= 6) of coordinates")
+    rles = mu.frPyObjects(polys, height, width)
+    return _decode(mu.merge(rles))
+
+
+def bbox_of_mask(mask) -> list[float]:
+    """COCO box ``[x, y, w, h]`` (pixels, x = column) of a boolean mask; zeros when empty."""
+    mask = np.asarray(mask, dtype=bool)
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return [0.0, 0.0, 0.0, 0.0]
+    cols = np.flatnonzero(mask.any(axis=0))
+    return [float(cols[0]), float(rows[0]), float(cols[-1] - cols[0] + 1),
+            float(rows[-1] - rows[0] + 1)]
+
+
+# ----------------------------------------------------------------------------- occlusion
+
+
+def occlusion_order(depths: Sequence[float], amodal_masks: Sequence[np.ndarray]
+                    ) -> tuple[list[int], list[int]]:
+    """KINS ``(oco_id, ico_id)`` per instance of one image (definition in the module doc).
+
+    ``depths`` (K,) sort front (small) to back; ``amodal_masks`` K boolean (H, W) masks.
+    """
+    k = len(depths)
+    if len(amodal_masks) != k:
+        raise ValueError(f"{k} depths but {len(amodal_masks)} masks")
+    if k == 0:
+        return [], []
+    flat = np.stack([np.asarray(m, dtype=bool).ravel() for m in amodal_masks]).astype(np.float32)
+    overlap = (flat @ flat.T) > 0  # (K, K)
+    parent = list(range(k))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(*np.nonzero(np.triu(overlap, 1)), strict=True):
+        parent[find(int(i))] = find(int(j))
+    order = sorted(range(k), key=lambda i: (float(depths[i]), i))  # front to back
+    cluster_ids: dict[int, int] = {}
+    oco, ico = [0] * k, [0] * k
+    rank_in: dict[int, int] = {}
+    for i in order:
+        root = find(i)
+        cluster_ids.setdefault(root, len(cluster_ids) + 1)
+        rank_in[root] = rank_in.get(root, 0) + 1
+        oco[i], ico[i] = cluster_ids[root], rank_in[root]
+    return oco, ico
+
+
+def kins_annotation(ann_id: int, image_id: int, category_id: int, amodal_mask, visible_mask,
+                    oco_id: int, ico_id: int, track_id: int | None = None) -> dict:
+    """One KINS annotation dict from boolean (H, W) amodal and visible masks."""
+    a = np.asarray(amodal_mask, dtype=bool)
+    v = np.asarray(visible_mask, dtype=bool)
+    if a.shape != v.shape:
+        raise ValueError(f"amodal mask {a.shape} and visible mask {v.shape} differ in size")
+    ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
+           "a_segm": mask_to_rle(a), "i_segm": mask_to_rle(v),
+           "a_bbox": bbox_of_mask(a), "i_bbox": bbox_of_mask(v),
+           "a_area": int(a.sum()), "i_area": int(v.sum()),
+           "oco_id": int(oco_id), "ico_id": int(ico_id), "iscrowd": 0}
+    if track_id is not None:
+        ann["track_id"] = int(track_id)
+    return ann
+
+
+def coco_annotation(ann_id: int, image_id: int, category_id: int, mask, score: float = 1.0,
+                    track_id: int | None = None) -> dict:
+    """One COCO instance annotation dict (RLE ``segmentation``) from a boolean (H, W) mask."""
+    m = np.asarray(mask, dtype=bool)
+    ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
+           "segmentation": mask_to_rle(m), "bbox": bbox_of_mask(m), "area": int(m.sum()),
+           "score": float(score), "iscrowd": 0}
+    if track_id is not None:
+        ann["track_id"] = int(track_id)
+    return ann
+
+
+def image_entry(image_id: int, sequence: str, frame: int, height: int, width: int) -> dict:
+    """An ``images`` entry with ``file_name`` ``SSSS/FFFFFF.png``."""
+    return {"id": int(image_id), "file_name": f"{sequence}/{int(frame):06d}.png",
+            "height": int(height), "width": int(width), "frame": int(frame)}
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def write_kins(path: str | Path, images: list[dict], annotations: list[dict],
+               categories: list[dict] | None = None) -> None:
+    """Write a KINS-format JSON file atomically (categories default to :data:`KINS_CATEGORIES`).
+
+    The content is validated first (as :func:`read_kins` does), so an invalid annotation
+    raises ``ValueError`` and nothing is written.
+    """
+    doc = {"images": list(images), "categories": list(categories or KINS_CATEGORIES),
+           "annotations": list(annotations)}
+    try:
+        _validate(doc, KINS_KEYS, ("a_segm", "i_segm"))
+    except _Invalid as exc:
+        raise ValueError(f"invalid KINS content: {exc}") from None
+    atomic_write_json(path, doc, indent=None)
+
+
+def read_kins(path: str | Path) -> dict[str, list[dict]]:
+    """Read and validate a KINS JSON file; returns ``{"images", "categories", "annotations"}``.
+
+    Every annotation must have :data:`KINS_KEYS`, refer to an existing image and category, and
+    carry masks (RLE or polygons) of its image's size. ``track_id`` and ``iscrowd`` are
+    optional (``iscrowd`` defaults to 0). Problems raise :class:`DataError` naming the file and
+    the annotation index.
+    """
+    doc = _load(path)
+    try:
+        _validate(doc, KINS_KEYS, ("a_segm", "i_segm"))
+    except _Invalid as exc:
+        raise DataError(path, str(exc)) from None
+    for ann in doc["annotations"]:
+        ann.setdefault("iscrowd", 0)
+    return doc
+
+
+def write_coco_instances(path: str | Path, images: list[dict], annotations: list[dict],
+                         categories: list[dict] | None = None) -> None:
+    """Write COCO instance-format JSON (visible 2D masks, as a segmenter outputs) atomically."""
+    doc = {"images": list(images), "categories": list(categories or KINS_CATEGORIES),
+           "annotations": list(annotations)}
+    try:
+        _validate(doc, COCO_KEYS, ("segmentation",))
+    except _Invalid as exc:
+        raise ValueError(f"invalid COCO content: {exc}") from None
+    atomic_write_json(path, doc, indent=None)
+
+
+def read_coco_instances(path: str | Path) -> dict[str, list[dict]]:
+    """Read COCO instance-format JSON; polygon segmentations are converted to RLE.
+
+    Returns ``{"images", "categories", "annotations"}``; every annotation ends with an RLE
+    ``segmentation`` plus ``bbox``, ``area`` (computed when absent), ``score`` (1.0 when
+    absent) and ``iscrowd`` (0 when absent).
+    """
+    doc = _load(path)
+    try:
+        _validate(doc, COCO_KEYS, ("segmentation",))
+    except _Invalid as exc:
+        raise DataError(path, str(exc)) from None
+    sizes = {img["id"]: (int(img["height"]), int(img["width"])) for img in doc["images"]}
+    for i, ann in enumerate(doc["annotations"]):
+        if isinstance(ann["segmentation"], dict) and "area" in ann and "bbox" in ann:
+            mask = None
+        else:
+            try:
+                mask = segm_to_mask(ann["segmentation"], *sizes[ann["image_id"]])
+            except (ValueError, TypeError) as exc:
+                raise DataError(path, f"annotations[{i}].segmentation: {exc}") from None
+            ann["segmentation"] = mask_to_rle(mask)
+            ann.setdefault("area", int(mask.sum()))
+            ann.setdefault("bbox", bbox_of_mask(mask))
+        ann.setdefault("score", 1.0)
+        ann.setdefault("iscrowd", 0)
+    return doc
+
+
+def annotations_by_image(doc: dict[str, list[dict]]) -> dict[int, list[dict]]:
+    """Annotations grouped by ``image_id`` (every image present, possibly with an empty list)."""
+    out: dict[int, list[dict]] = {img["id"]: [] for img in doc["images"]}
+    for ann in doc["annotations"]:
+        out[ann["image_id"]].append(ann)
+    return out
+
+
+class _Invalid(Exception):
+    pass
+
+
+def _load(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DataError(path, "file not found") from None
+    except json.JSONDecodeError as exc:
+        raise DataError(path, f"invalid JSON ({exc})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(path, f"unreadable file ({exc})") from None
+    if not isinstance(doc, dict):
+        raise DataError(path, "expected a JSON object with images, categories, annotations")
+    return doc
+
+
+def _validate(doc: dict, ann_keys: Sequence[str], segm_keys: Sequence[str]) -> None:
+    for key in ("images", "categories", "annotations"):
+        if not isinstance(doc.get(key), list):
+            raise _Invalid(f"missing or non-list top-level key '{key}'")
+    sizes = {}
+    for i, img in enumerate(doc["images"]):
+        missing = [k for k in IMAGE_KEYS if not isinstance(img, dict) or k not in img]
+        if missing:
+            raise _Invalid(f"images[{i}]: missing key(s) {missing}")
+        if img["id"] in sizes:
+            raise _Invalid(f"images[{i}]: duplicate image id {img['id']}")
+        sizes[img["id"]] = (int(img["height"]), int(img["width"]))
+    cats = set()
+    for i, cat in enumerate(doc["categories"]):
+        if not isinstance(cat, dict) or "id" not in cat or "name" not in cat:
+            raise _Invalid(f"categories[{i}]: needs 'id' and 'name'")
+        cats.add(cat["id"])
+    ids = set()
+    for i, ann in enumerate(doc["annotations"]):
+        missing = [k for k in ann_keys if not isinstance(ann, dict) or k not in ann]
+        if missing:
+            raise _Invalid(f"annotations[{i}]: missing key(s) {missing}")
+        if ann["id"] in ids:
+            raise _Invalid(f"annotations[{i}]: duplicate annotation id {ann['id']}")
+        ids.add(ann["id"])
+        if ann["image_id"] not in sizes:
+            raise _Invalid(f"annotations[{i}]: unknown image_id {ann['image_id']}")
+        if ann["category_id"] not in cats:
+            raise _Invalid(f"annotations[{i}]: unknown category_id {ann['category_id']}")
+        for key in segm_keys:
+            _check_segm(ann[key], sizes[ann["image_id"]], f"annotations[{i}].{key}")
+
+
+def _check_segm(segm, size: tuple[int, int], where: str) -> None:
+    if isinstance(segm, dict):
+        if "size" not in segm or "counts" not in segm:
+            raise _Invalid(f"{where}: RLE needs 'size' and 'counts'")
+        if tuple(int(v) for v in segm["size"]) != size:
+            raise _Invalid(f"{where}: RLE size {list(segm['size'])} != image size {list(size)}")
+    elif isinstance(segm, list):
+        if not all(isinstance(p, list) and len(p) % 2 == 0 for p in segm):
+            raise _Invalid(f"{where}: polygons must be lists of x, y pairs")
+    else:
+        raise _Invalid(f"{where}: expected an RLE dict or a list of polygons")

@@ -1,0 +1,265 @@
+"""Pinhole cameras with KITTI calibration: reading, writing and projecting LiDAR points.
+
+Frames (KITTI conventions, fixed once here):
+
+* **velodyne** (our sensor frame): x forward, y left, z up, origin at the LiDAR.
+* **camera 0 (unrectified)**: x right, y down, z forward. ``Tr_velo_cam`` (3, 4) maps velodyne
+  points into it: ``p_cam0 = Tr_velo_cam @ [p_velo; 1]``.
+* **rectified camera 0** (``"cam"`` below, where KITTI labels live): ``p_rect = R_rect @ p_cam0``.
+* **image of camera i**: ``[u*d, v*d, d] = P_i @ [p_rect; 1]``; ``P_i`` (3, 4) already contains
+  the baseline of camera i with respect to camera 0, so every camera projects from the same
+  rectified camera-0 coordinates. Camera 2 is the left colour camera (``image_02``).
+
+Calibration file formats accepted by :func:`read_calib`::
+
+    # tracking (calib/SSSS.txt)          # object (calib/NNNNNN.txt)
+    P0: 12 numbers                       P0: 12 numbers ... P3:
+    ...                                  R0_rect: 9 numbers
+    R_rect 9 numbers                     Tr_velo_to_cam: 12 numbers
+    Tr_velo_cam 12 numbers               Tr_imu_to_velo: 12 numbers
+    Tr_imu_velo 12 numbers
+
+A key may carry a trailing colon or not. :func:`write_calib` writes the tracking format with
+shortest exact float representations, so write -> read is exact.
+
+>>> calib = kitti_default_calib()
+>>> uv, depth = project_points(np.array([[10.0, 0.0, 0.0]]), calib)
+>>> uv.round(1).tolist(), depth.round(3).tolist()
+([[614.0, 175.0]], [9.73])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from seqshape._io import atomic_write_text
+from seqshape.errors import DataError
+
+#: KITTI colour image size (width, height) of the 2011_09_26 recordings.
+KITTI_IMAGE_SIZE = (1242, 375)
+
+# canonical key -> accepted spellings (colon stripped) and the expected number of values
+_KEYS = {
+    "P0": (("P0",), 12), "P1": (("P1",), 12), "P2": (("P2",), 12), "P3": (("P3",), 12),
+    "R_rect": (("R_rect", "R0_rect", "R_rect_00"), 9),
+    "Tr_velo_cam": (("Tr_velo_cam", "Tr_velo_to_cam"), 12),
+    "Tr_imu_velo": (("Tr_imu_velo", "Tr_imu_to_velo"), 12),
+}
+_ALIASES = {alias: key for key, (aliases, _) in _KEYS.items() for alias in aliases}
+_REQUIRED = ("P2", "R_rect", "Tr_velo_cam")
+
+
+@dataclass
+class KittiCalib:
+    """KITTI calibration of one sequence (or one object-dataset frame).
+
+    ``P0..P3`` (3, 4) project rectified camera-0 points to camera i's pixels; ``R_rect`` (3, 3)
+    rectifies camera 0; ``Tr_velo_cam`` (3, 4) maps velodyne points to (unrectified) camera 0;
+    ``Tr_imu_velo`` (3, 4) maps IMU/GPS points to velodyne. ``image_size`` is (width, height).
+    """
+
+    P0: np.ndarray
+    P1: np.ndarray
+    P2: np.ndarray
+    P3: np.ndarray
+    R_rect: np.ndarray
+    Tr_velo_cam: np.ndarray
+    Tr_imu_velo: np.ndarray
+    image_size: tuple[int, int] = field(default=KITTI_IMAGE_SIZE)
+
+    def __post_init__(self):
+        for name in ("P0", "P1", "P2", "P3", "Tr_velo_cam", "Tr_imu_velo"):
+            setattr(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(3, 4))
+        self.R_rect = np.asarray(self.R_rect, dtype=np.float64).reshape(3, 3)
+        self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+
+    def P(self, cam: int) -> np.ndarray:
+        """The (3, 4) projection matrix of camera ``cam`` (0..3)."""
+        if cam not in (0, 1, 2, 3):
+            raise ValueError(f"KITTI has cameras 0..3, not {cam}")
+        return getattr(self, f"P{cam}")
+
+    @property
+    def velo_to_rect(self) -> np.ndarray:
+        """(4, 4) homogeneous transform velodyne -> rectified camera 0."""
+        return _h(self.R_rect) @ _h(self.Tr_velo_cam)
+
+    @property
+    def rect_to_velo(self) -> np.ndarray:
+        """(4, 4) homogeneous transform rectified camera 0 -> velodyne."""
+        return np.linalg.inv(self.velo_to_rect)
+
+    @property
+    def imu_to_velo(self) -> np.ndarray:
+        """(4, 4) homogeneous transform IMU -> velodyne."""
+        return _h(self.Tr_imu_velo)
+
+    def intrinsics(self, cam: int = 2) -> np.ndarray:
+        """The (3, 3) intrinsic matrix K of camera ``cam`` (left block of its P)."""
+        return self.P(cam)[:, :3].copy()
+
+    @property
+    def width(self) -> int:
+        return self.image_size[0]
+
+    @property
+    def height(self) -> int:
+        return self.image_size[1]
+
+
+def _h(m: np.ndarray) -> np.ndarray:
+    """Embed a (3, 3) or (3, 4) matrix in a (4, 4) homogeneous one."""
+    out = np.eye(4)
+    out[:3, : m.shape[1]] = m
+    return out
+
+
+def kitti_default_calib() -> KittiCalib:
+    """The calibration of the KITTI 2011_09_26 recordings (tracking sequences 0000-0013).
+
+    Image 1242 x 375; P2 with fx = fy = 721.5377, cx = 609.5593, cy = 172.854 and the 44.857
+    baseline term; R_rect close to identity; Tr_velo_cam the standard velodyne -> camera
+    rotation with translation (-0.004, -0.076, -0.272) m.
+    """
+    f, cx, cy = 7.215377e02, 6.095593e02, 1.728540e02
+    k = [[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]
+    p = {name: np.c_[k, t] for name, t in (
+        ("P0", [0.0, 0.0, 0.0]),
+        ("P1", [-3.875744e02, 0.0, 0.0]),
+        ("P2", [4.485728e01, 2.163791e-01, 2.745884e-03]),
+        ("P3", [-3.395242e02, 2.199936e00, 2.729905e-03]))}
+    r_rect = [[9.999239e-01, 9.837760e-03, -7.445048e-03],
+              [-9.869795e-03, 9.999421e-01, -4.278459e-03],
+              [7.402527e-03, 4.351614e-03, 9.999631e-01]]
+    tr_velo_cam = [[7.533745e-03, -9.999714e-01, -6.166020e-04, -4.069766e-03],
+                   [1.480249e-02, 7.280733e-04, -9.998902e-01, -7.631618e-02],
+                   [9.998621e-01, 7.523790e-03, 1.480755e-02, -2.717806e-01]]
+    tr_imu_velo = [[9.999976e-01, 7.553071e-04, -2.035826e-03, -8.086759e-01],
+                   [-7.854027e-04, 9.998898e-01, -1.482298e-02, 3.195559e-01],
+                   [2.024406e-03, 1.482454e-02, 9.998881e-01, -7.997231e-01]]
+    return KittiCalib(R_rect=r_rect, Tr_velo_cam=tr_velo_cam, Tr_imu_velo=tr_imu_velo,
+                      image_size=KITTI_IMAGE_SIZE, **p)
+
+
+def read_calib(path: str | Path, image_size: tuple[int, int] = KITTI_IMAGE_SIZE) -> KittiCalib:
+    """Read a KITTI calibration file (tracking or object format, see the module docstring).
+
+    ``P2``, ``R_rect`` and ``Tr_velo_cam`` are required; a missing P0/P1/P3 is filled with P2
+    and a missing ``Tr_imu_velo`` with the identity. Unknown keys (``Tr_cam_to_road`` ...) are
+    ignored. Malformed lines raise :class:`DataError` naming the file and line.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DataError(path, "calibration file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(path, f"unreadable calibration file ({exc})") from None
+    values: dict[str, np.ndarray] = {}
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        key = parts[0].rstrip(":")
+        if key not in _ALIASES:
+            continue
+        canon = _ALIASES[key]
+        n = _KEYS[canon][1]
+        try:
+            nums = np.array([float(v) for v in parts[1:]], dtype=np.float64)
+        except ValueError:
+            raise DataError(path, f"{key}: non-numeric value in {parts[1:]}", line=lineno) from None
+        if nums.size != n:
+            raise DataError(path, f"{key}: expected {n} numbers, got {nums.size}", line=lineno)
+        if not np.all(np.isfinite(nums)):
+            raise DataError(path, f"{key}: non-finite value", line=lineno)
+        if canon in values:
+            raise DataError(path, f"{key}: duplicate key", line=lineno)
+        values[canon] = nums
+    missing = [k for k in _REQUIRED if k not in values]
+    if missing:
+        raise DataError(path, f"missing calibration keys {missing} (found {sorted(values)})")
+    for cam in ("P0", "P1", "P3"):
+        values.setdefault(cam, values["P2"])
+    values.setdefault("Tr_imu_velo", np.eye(4)[:3].ravel())
+    return KittiCalib(image_size=image_size, **values)
+
+
+def _fmt(v: float) -> str:
+    """Shortest string that reads back to exactly ``v``."""
+    return repr(float(v))
+
+
+def write_calib(path: str | Path, calib: KittiCalib) -> None:
+    """Write ``calib`` in the KITTI tracking format (atomically); read back exactly."""
+    lines = [f"P{i}: " + " ".join(_fmt(v) for v in calib.P(i).ravel()) for i in range(4)]
+    lines.append("R_rect " + " ".join(_fmt(v) for v in calib.R_rect.ravel()))
+    lines.append("Tr_velo_cam " + " ".join(_fmt(v) for v in calib.Tr_velo_cam.ravel()))
+    lines.append("Tr_imu_velo " + " ".join(_fmt(v) for v in calib.Tr_imu_velo.ravel()))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def _apply(m: np.ndarray, points) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return pts @ m[:3, :3].T + m[:3, 3]
+
+
+def velo_to_cam(points, calib: KittiCalib) -> np.ndarray:
+    """Velodyne points (N, 3) -> rectified camera-0 coordinates (N, 3) float64."""
+    return _apply(calib.velo_to_rect, points)
+
+
+def cam_to_velo(points, calib: KittiCalib) -> np.ndarray:
+    """Rectified camera-0 points (N, 3) -> velodyne coordinates (N, 3) float64."""
+    return _apply(calib.rect_to_velo, points)
+
+
+def project_rect(points_rect, calib: KittiCalib, cam: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Project rectified camera-0 points (N, 3) with ``P_cam``.
+
+    Returns ``uv`` (N, 2) float64 pixel coordinates (x right, y down; pixel centres at integer
+    coordinates as in KITTI) and ``depth`` (N,) float64, the third homogeneous coordinate, i.e.
+    metres along the optical axis (plus P's small offset term). Points with depth <= 0 are
+    behind the camera: their uv are still returned (meaningless), filter on ``depth > 0``.
+    """
+    pts = np.asarray(points_rect, dtype=np.float64).reshape(-1, 3)
+    p = calib.P(cam)
+    hom = pts @ p[:, :3].T + p[:, 3]  # (N, 3)
+    depth = hom[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = hom[:, :2] / depth[:, None]
+    return uv, depth
+
+
+def project_points(points_velo, calib: KittiCalib, cam: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Project velodyne points (N, 3) into camera ``cam``: ``P_cam @ R_rect @ Tr_velo_cam``.
+
+    Returns ``(uv (N, 2), depth (N,))`` float64 as :func:`project_rect`.
+    """
+    return project_rect(velo_to_cam(points_velo, calib), calib, cam)
+
+
+def unproject_points(uv, depth, calib: KittiCalib, cam: int = 2) -> np.ndarray:
+    """Inverse of :func:`project_points`: pixels (N, 2) and depths (N,) -> velodyne (N, 3)."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    depth = np.asarray(depth, dtype=np.float64).reshape(-1)
+    p = calib.P(cam)
+    hom = np.c_[uv * depth[:, None], depth] - p[:, 3]  # (N, 3) = K @ p_rect
+    rect = np.linalg.solve(p[:, :3], hom.T).T
+    return cam_to_velo(rect, calib)
+
+
+def in_image(uv, depth, calib: KittiCalib, min_depth: float = 0.0) -> np.ndarray:
+    """Boolean (N,): in front of the camera (depth > min_depth) and inside the image bounds.
+
+    The image covers ``-0.5 <= u < width - 0.5`` and ``-0.5 <= v < height - 0.5`` (pixel
+    centres at integers).
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    w, h = calib.image_size
+    with np.errstate(invalid="ignore"):
+        return ((np.asarray(depth) > min_depth) & (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5)
+                & (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5))
