@@ -1,0 +1,305 @@
+"""Run estimators over a dataset's tracks and score every frame (docs/evaluation.md).
+
+What is computed, per method and per scored frame ``t`` of a track:
+
+* the track runs from its first to its last detection (frames with >= 1 point), as in the
+  paper; every frame in between is fed to the estimator (an empty frame is a ``(0, 3)`` array)
+  and scored. Frames before the first or after the last detection are not run;
+* ``cd_m``: :func:`~seqshape.evaluation.metrics.chamfer_distance` between the estimate's complete
+  cloud and the ground-truth complete shape placed in frame t (``Track.complete_in_frame(t)``),
+  both in frame t's sensor frame, all points;
+* ``emd_m``: exact EMD between equal-size random subsets (``emd_points`` each, fixed seed per
+  track and frame, the same ground-truth subset for every method) on every ``emd_every``-th
+  scored frame of the track (counted from its first detection), NaN elsewhere;
+* ``trans_m``, ``rot_rad``: planar translation and wrapped yaw errors of the estimated pose;
+* ``n_det``: detections so far (frames with >= 1 point up to and including t), ``n_points``:
+  points in frame t, ``distance_m``: planar distance of the true box centre from the sensor.
+
+Frames whose ground-truth pose is unknown (NaN) are fed but get NaN metrics; tracks without a
+complete shape get NaN CD/EMD. Tracks are processed in chunks of ``batch_tracks``: within a
+chunk, all active tracks go through one ``step`` call per frame index.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+from collections.abc import Mapping, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from seqshape._progress import progress
+from seqshape.data import Track
+from seqshape.evaluation.metrics import (
+    cd_floor,
+    chamfer_distance,
+    emd_batch,
+    pose_errors,
+    stable_seed,
+    subsample_pair,
+)
+from seqshape.errors import ConfigError, SeqshapeError
+
+log = logging.getLogger(__name__)
+
+#: Columns of the per-frame records, in CSV order.
+FIELDS = ("method", "track_id", "frame", "n_det", "n_points", "distance_m",
+          "cd_m", "emd_m", "trans_m", "rot_rad")
+_EMD_TASK = 16  # pairs per process-pool task
+
+
+class EstimatorLike(Protocol):
+    recurrent: bool
+
+    def step(self, track_ids: Sequence[str], point_lists: Sequence[np.ndarray]) -> list: ...
+
+    def reset(self, track_id: str | None = None) -> None: ...
+
+
+@dataclass
+class EvalResult:
+    """Per-frame records (columns :data:`FIELDS`, one row per method and scored frame),
+    the CD floor per track, and the settings used."""
+
+    records: dict[str, np.ndarray]
+    floors: dict[str, np.ndarray]          # "track_id", "floor_m", "n_pred", "method"
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def methods(self) -> list[str]:
+        return list(dict.fromkeys(self.records["method"].tolist()))
+
+    def of(self, method: str) -> dict[str, np.ndarray]:
+        """The records of one method."""
+        m = self.records["method"] == method
+        return {k: v[m] for k, v in self.records.items()}
+
+
+def detection_span(track: Track) -> tuple[int, int] | None:
+    """``(first, last + 1)`` frame indices spanning the detections, or None without any."""
+    det = np.flatnonzero(track.num_points > 0)
+    return None if len(det) == 0 else (int(det[0]), int(det[-1]) + 1)
+
+
+def predict_track(estimator: EstimatorLike, track: Track) -> tuple[range, list]:
+    """Run one track from its first to its last detection; returns ``(frames, estimates)``."""
+    span = detection_span(track)
+    if span is None:
+        raise SeqshapeError(f"track {track.track_id} has no frame with points")
+    frames = range(*span)
+    estimator.reset(track.track_id)
+    out = [estimator.step([track.track_id], [track.points[t]])[0] for t in frames]
+    estimator.reset(track.track_id)
+    return frames, out
+
+
+_MESH_KEYS = ("vehicle_source", "mesh_source", "source", "mesh", "mesh_id", "vehicle")
+_mesh_cache: dict[str, Any] = {}
+
+
+def surface_resampler(track: Track):
+    """A function ``(n, seed) -> (n, 3)`` re-sampling the track's true outer surface in the
+    canonical frame, or None when the surface cannot be rebuilt.
+
+    Works for procedural vehicles: the track's meta names the mesh as
+    ``"procedural:<kind>:<seed>"`` (looked up under the keys of ``_MESH_KEYS``, then any string
+    value), rebuilt with ``seqshape.vehicles.procedural_vehicle`` and sampled with
+    ``seqshape.vehicles.sample_outer_surface``. Meshes are cached per source.
+    """
+    values = [track.meta.get(k) for k in _MESH_KEYS] + list(track.meta.values())
+    source = next((v for v in values if isinstance(v, str) and v.startswith("procedural:")),
+                  None)
+    if source is None:
+        return None
+    try:
+        from seqshape.vehicles import procedural_vehicle, sample_outer_surface
+    except ImportError:
+        return None
+    if source not in _mesh_cache:
+        _, kind, vseed = source.split(":", 2)
+        try:
+            _mesh_cache[source] = procedural_vehicle(kind, int(vseed)).mesh
+        except (ValueError, KeyError) as exc:
+            log.warning("cannot rebuild %s for the CD floor (%s); using the split estimate",
+                        source, exc)
+            return None
+    mesh = _mesh_cache[source]
+    return lambda n, seed: sample_outer_surface(mesh, n=n, seed=seed)
+
+
+class _Collector:
+    """Accumulates rows and EMD jobs (inline or on a process pool)."""
+
+    def __init__(self, workers: int):
+        self.rows: dict[str, list] = {k: [] for k in FIELDS}
+        self.pool = None
+        if workers > 0:
+            self.pool = ProcessPoolExecutor(
+                max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+        self.pending: list[tuple[list[int], Future | list[float]]] = []
+        self.batch: list[tuple[int, tuple[np.ndarray, np.ndarray]]] = []
+
+    def add(self, **row) -> int:
+        for k in FIELDS:
+            self.rows[k].append(row[k])
+        return len(self.rows["method"]) - 1
+
+    def add_emd(self, row: int, pair: tuple[np.ndarray, np.ndarray]) -> None:
+        self.batch.append((row, pair))
+        if len(self.batch) >= _EMD_TASK:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.batch:
+            return
+        idx = [i for i, _ in self.batch]
+        pairs = [p for _, p in self.batch]
+        self.batch = []
+        job = self.pool.submit(emd_batch, pairs) if self.pool else emd_batch(pairs)
+        self.pending.append((idx, job))
+
+    def finish(self) -> dict[str, np.ndarray]:
+        self.flush()
+        emd = self.rows["emd_m"]
+        done = progress(total=len(self.pending), desc="EMD", unit="task")
+        for idx, job in self.pending:
+            values = job.result() if isinstance(job, Future) else job
+            for i, v in zip(idx, values):
+                emd[i] = v
+            done.update(1)
+        done.close()
+        if self.pool:
+            self.pool.shutdown()
+        out = {k: np.asarray(v) for k, v in self.rows.items()}
+        for k in FIELDS[2:5]:
+            out[k] = out[k].astype(np.int64)
+        for k in FIELDS[5:]:
+            out[k] = out[k].astype(np.float64)
+        out["method"] = out["method"].astype(str)
+        out["track_id"] = out["track_id"].astype(str)
+        return out
+
+
+def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int, est,
+                 emd_points: int, do_emd: bool) -> None:
+    gt_pose = track.poses[t]
+    known = bool(np.all(np.isfinite(gt_pose)))
+    trans, rot = pose_errors(est.pose, gt_pose) if known else (np.nan, np.nan)
+    cd = np.nan
+    gt = None
+    pred = np.asarray(est.complete)
+    if known and track.complete is not None and len(pred):
+        gt = track.complete_in_frame(t)
+        cd = chamfer_distance(pred, gt)
+    row = col.add(method=method, track_id=track.track_id, frame=t, n_det=n_det,
+                  n_points=len(track.points[t]), distance_m=float(np.hypot(*gt_pose[:2])),
+                  cd_m=cd, emd_m=np.nan, trans_m=trans, rot_rad=rot)
+    if do_emd and gt is not None:
+        col.add_emd(row, subsample_pair(pred, gt, emd_points, stable_seed(track.track_id, t)))
+
+
+def _run_chunk(col: _Collector, name: str, est: EstimatorLike, tracks: list[Track],
+               spans: list[tuple[int, int]], emd_points: int, emd_every: int, bar) -> int:
+    """Step all tracks of a chunk together, frame index by frame index; returns K."""
+    length = max(stop - start for start, stop in spans)
+    n_det = [0] * len(tracks)
+    k_pred = 0
+    for tr in tracks:
+        est.reset(tr.track_id)
+    for i in range(length):
+        active = [j for j, (a, b) in enumerate(spans) if a + i < b]
+        ids = [tracks[j].track_id for j in active]
+        pts = [tracks[j].points[spans[j][0] + i] for j in active]
+        estimates = est.step(ids, pts)
+        if len(estimates) != len(active):
+            raise SeqshapeError(f"estimator {name!r} returned {len(estimates)} estimates for "
+                                f"{len(active)} tracks")
+        for j, e in zip(active, estimates):
+            t = spans[j][0] + i
+            n_det[j] += int(len(tracks[j].points[t]) > 0)
+            k_pred = k_pred or len(e.complete)
+            _score_frame(col, name, tracks[j], t, n_det[j], e, emd_points,
+                         emd_every > 0 and i % emd_every == 0)
+            if t == spans[j][1] - 1:
+                est.reset(tracks[j].track_id)
+        bar.update(len(active))
+    return k_pred
+
+
+def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int) -> list[tuple]:
+    out = []
+    for tr in tracks:
+        if tr.complete is None:
+            continue
+        resample = surface_resampler(tr) if floor in ("auto", "resample") else None
+        if floor == "resample" and resample is None:
+            raise ConfigError(f"track {tr.track_id}: cannot re-sample its surface (no mesh "
+                              f"source in its meta or seqshape.vehicles unavailable)")
+        for k in sorted(n_preds):
+            value, how = cd_floor(tr.complete, k, stable_seed(seed, tr.track_id), resample)
+            out.append((tr.track_id, value, k, how))
+    return out
+
+
+def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
+                    max_tracks: int | None = None, emd_points: int = 1024, emd_every: int = 1,
+                    batch_tracks: int = 64, workers: int = 2, floor: str = "auto",
+                    seed: int = 0) -> EvalResult:
+    """Run each estimator over every track of ``dataset`` and score each frame.
+
+    Args:
+        estimators: method name -> estimator (``step``/``reset``/``recurrent``), e.g.
+            ``{"sequential": ..., "baseline": ...}``.
+        dataset: a sequence of :class:`~seqshape.data.Track` (e.g. ``TrackDataset.split("val")``).
+        max_tracks: evaluate only the first N tracks.
+        emd_points: EMD subsample size (both clouds); ``emd_every``: EMD on every k-th scored
+            frame of each track (0 disables EMD).
+        batch_tracks: tracks stepped together per ``step`` call.
+        workers: processes computing EMD (0: in this process).
+        floor: CD floor method: ``"auto"`` (re-sample the mesh when possible, else split the
+            stored sampling), ``"resample"`` or ``"split"`` (see :func:`metrics.cd_floor`).
+    """
+    if emd_points < 1 or emd_every < 0 or batch_tracks < 1 or workers < 0:
+        raise ConfigError("emd_points and batch_tracks must be >= 1, emd_every and workers >= 0")
+    if floor not in ("auto", "resample", "split"):
+        raise ConfigError(f"unknown CD floor method {floor!r}")
+    n = len(dataset) if max_tracks is None else min(len(dataset), max_tracks)
+    tracks, spans = [], []
+    for i in range(n):
+        tr = dataset[i]
+        span = detection_span(tr)
+        if span is None:
+            log.warning("track %s has no detections; skipped", tr.track_id)
+            continue
+        tracks.append(tr)
+        spans.append(span)
+    if not tracks:
+        raise SeqshapeError("no track with detections to evaluate")
+    col = _Collector(workers)
+    k_of: dict[str, int] = {}
+    total = sum(b - a for a, b in spans) * len(estimators)
+    bar = progress(total=total, desc="evaluate", unit="frame")
+    try:
+        for c in range(0, len(tracks), batch_tracks):
+            for name, est in estimators.items():
+                k = _run_chunk(col, name, est, tracks[c:c + batch_tracks],
+                               spans[c:c + batch_tracks], emd_points, emd_every, bar)
+                k_of[name] = k_of.get(name) or k
+        bar.close()
+        records = col.finish()
+    except BaseException:
+        if col.pool:
+            col.pool.shutdown(cancel_futures=True)
+        raise
+    fl = _floors(tracks, {k for k in k_of.values() if k}, floor, seed)
+    floors = {"track_id": np.array([f[0] for f in fl], dtype=str),
+              "floor_m": np.array([f[1] for f in fl], dtype=np.float64),
+              "n_pred": np.array([f[2] for f in fl], dtype=np.int64),
+              "method": np.array([f[3] for f in fl], dtype=str)}
+    settings = dict(n_tracks=len(tracks), emd_points=emd_points, emd_every=emd_every,
+                    floor=floor, seed=seed, methods=list(estimators),
+                    n_pred_points=k_of)
+    return EvalResult(records, floors, settings)
