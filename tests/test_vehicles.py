@@ -1,0 +1,117 @@
+"""Tests of seqshape.vehicles: procedural bodies, user-mesh loading, outer-surface sampling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from seqshape.errors import ConfigError
+from seqshape.vehicles import (
+    KINDS,
+    procedural_vehicle,
+    sample_outer_surface,
+    vehicle_library,
+)
+
+# ---------------------------------------------------------------- procedural bodies
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_kind_is_closed_realistic_and_centred(kind):
+    for seed in (0, 1, 2):
+        v = procedural_vehicle(kind, seed)
+        m = v.mesh
+        assert m.is_watertight and m.is_winding_consistent
+        assert m.volume > 0  # outward normals
+        length, width, height = v.size
+        assert 3.6 <= length <= 5.8 and 1.6 <= width <= 2.1 and 1.3 <= height <= 2.2
+        np.testing.assert_allclose(m.bounds.mean(axis=0), 0.0, atol=1e-9)
+        assert 2000 <= len(m.faces) <= 10000
+        assert v.kind == kind and v.source == f"procedural:{kind}:{seed}"
+        # wheels touch the ground: the lowest points lie near the axles, not under the body ends
+        low = m.vertices[m.vertices[:, 2] < m.bounds[0, 2] + 1e-6]
+        assert np.all(np.abs(low[:, 0]) < length / 2 - 0.5)
+
+
+def test_body_shape_depends_on_kind():
+    # vans are taller than sedans; the roof of a sedan is shorter than its body
+    sedan, van = procedural_vehicle("sedan", 3), procedural_vehicle("van", 3)
+    assert van.size[2] > sedan.size[2] + 0.2
+    top = sedan.mesh.vertices[sedan.mesh.vertices[:, 2] > sedan.mesh.bounds[1, 2] - 0.05]
+    assert np.ptp(top[:, 0]) < 0.5 * sedan.size[0]
+
+
+def test_library_is_deterministic_distinct_and_mixed():
+    a, b = vehicle_library(25, seed=7), vehicle_library(25, seed=7)
+    assert [v.vehicle_id for v in a] == [v.vehicle_id for v in b]
+    for va, vb in zip(a, b, strict=True):
+        np.testing.assert_array_equal(va.mesh.vertices, vb.mesh.vertices)
+    assert len({v.vehicle_id for v in a}) == 25
+    sizes = np.array([v.size for v in a])
+    assert len(np.unique(sizes.round(6), axis=0)) == 25
+    assert a[7].vehicle_id == "proc-0007-" + a[7].kind
+    assert {v.kind for v in a} == set(KINDS)
+    c = vehicle_library(25, seed=8)
+    assert not np.allclose(sizes, np.array([v.size for v in c]))
+    # the source rebuilds the same vehicle
+    kind, seed = a[3].source.split(":")[1:]
+    np.testing.assert_array_equal(procedural_vehicle(kind, int(seed)).mesh.vertices,
+                                  a[3].mesh.vertices)
+    only = vehicle_library(6, seed=0, kinds=["van", "pickup"])
+    assert {v.kind for v in only} == {"van", "pickup"}
+    with pytest.raises(ConfigError):
+        vehicle_library(3, kinds=["tank"])
+
+
+# ---------------------------------------------------------------- outer surface
+
+
+def _box_in_box():
+    outer = trimesh.creation.box(extents=(4.0, 2.0, 1.5))
+    inner = trimesh.creation.box(extents=(1.0, 0.8, 0.6))
+    inner.apply_translation((0.5, 0.1, -0.1))
+    return outer, inner, trimesh.util.concatenate([outer, inner])
+
+
+def test_outer_surface_drops_a_closed_mesh_inside_another():
+    outer, inner, both = _box_in_box()
+    pts = sample_outer_surface(both, n=6000, seed=3)
+    assert pts.shape == (6000, 3) and pts.dtype == np.float32
+    # every point is on the outer box: |coordinate| equals the half extent on some axis
+    half = np.array([2.0, 1.0, 0.75])
+    dist = np.min(np.abs(np.abs(pts) - half), axis=1)
+    assert dist.max() < 1e-5
+    # none on the inner box (which is strictly inside the outer one)
+    assert np.all(np.any(np.abs(pts) > half - 0.1, axis=1))
+    # uniform by area: counts per face pair (±x, ±y, ±z) and per face follow the areas
+    face_axis = np.argmin(np.abs(np.abs(pts) - half), axis=1)
+    face_id = face_axis * 2 + (np.take_along_axis(pts, face_axis[:, None], 1)[:, 0] > 0)
+    counts = np.bincount(face_id, minlength=6)
+    areas = np.repeat([2.0 * 1.5, 4.0 * 1.5, 4.0 * 2.0], 2)
+    expected = 6000 * areas / areas.sum()
+    assert np.all(np.abs(counts - expected) < 4 * np.sqrt(expected) + 5)
+    # within a face, uniform too: the x coordinate on the top face is flat
+    top = pts[face_id == 5]
+    hist = np.histogram(top[:, 0], bins=4, range=(-2, 2))[0]
+    assert np.all(np.abs(hist - len(top) / 4) < 4 * np.sqrt(len(top) / 4))
+
+
+def test_outer_surface_is_deterministic_and_on_the_mesh():
+    v = procedural_vehicle("suv", 5)
+    a = sample_outer_surface(v.mesh, n=1000, seed=1)
+    np.testing.assert_array_equal(a, sample_outer_surface(v.mesh, n=1000, seed=1))
+    assert not np.array_equal(a, sample_outer_surface(v.mesh, n=1000, seed=2))
+    _, dist, _ = trimesh.proximity.closest_point(v.mesh, a)
+    assert dist.max() < 1e-5
+    # the points cover the whole body: front, back, roof and both sides
+    lo, hi = a.min(axis=0), a.max(axis=0)
+    np.testing.assert_allclose(lo, v.mesh.bounds[0], atol=0.05)
+    np.testing.assert_allclose(hi, v.mesh.bounds[1], atol=0.05)
+
+
+def test_outer_surface_rejects_bad_arguments():
+    with pytest.raises(ConfigError):
+        sample_outer_surface(trimesh.creation.box(), n=0)
+    with pytest.raises(ConfigError):
+        sample_outer_surface(trimesh.Trimesh(), n=10)
