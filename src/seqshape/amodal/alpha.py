@@ -1,0 +1,125 @@
+"""Filled alpha shapes of 2D point sets, rasterised as boolean image masks.
+
+The amodal mask of a vehicle is the region covered by its completed point cloud projected into
+the image. The projected points are a dense but irregular sample of the silhouette; the alpha
+shape (the union of the triangles of the alpha complex) follows concavities that the convex
+hull would fill, and it does not bridge gaps wider than the chosen radius.
+
+Construction: the Delaunay triangulation of the points (``scipy.spatial.Delaunay``); a triangle
+is kept when its circumradius is below ``1 / alpha`` pixels; the kept triangles are filled with
+``cv2.fillPoly`` at 1/16-pixel precision. Pixel ``(row v, column u)`` is the one whose centre is
+at image coordinates ``(u, v)`` (the KITTI projection convention).
+
+Automatic alpha (``alpha=None``): radius ``r = max(ALPHA_SPACING_FACTOR * s, MIN_RADIUS_PX)``
+where ``s`` is the 90th percentile of the nearest-neighbour distances of the (deduplicated)
+points. For a roughly uniform sample the Delaunay circumradii of interior triangles are about the
+local spacing, so a few spacings keep every interior triangle while rejecting the long slivers
+that bridge concavities or gaps. The 90th percentile (rather than the median) makes the rule
+tolerant of the uneven density of projected surfaces (grazing surfaces project densely).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+from scipy.spatial import Delaunay, QhullError, cKDTree
+
+log = logging.getLogger(__name__)
+
+ALPHA_SPACING_FACTOR = 3.0
+MIN_RADIUS_PX = 1.5
+_SHIFT = 4  # cv2 fixed-point bits: vertices at 1/16 px
+_FAR = 4.0  # coordinates clipped to [-_FAR * size, (1 + _FAR) * size] before rasterising
+
+
+def auto_alpha_radius(uv: np.ndarray) -> float:
+    """The automatic circumradius threshold (pixels) for points ``uv (N, 2)`` (module doc)."""
+    uv = np.unique(np.asarray(uv, dtype=np.float64).reshape(-1, 2), axis=0)
+    if len(uv) < 2:
+        return MIN_RADIUS_PX
+    d, _ = cKDTree(uv).query(uv, k=2)  # (N, 2); column 0 is the point itself
+    return float(max(ALPHA_SPACING_FACTOR * np.quantile(d[:, 1], 0.9), MIN_RADIUS_PX))
+
+
+def circumradii(vertices: np.ndarray) -> np.ndarray:
+    """Circumradius of each triangle, ``vertices (T, 3, 2) -> (T,)``; inf for degenerate ones."""
+    a = np.linalg.norm(vertices[:, 1] - vertices[:, 2], axis=1)
+    b = np.linalg.norm(vertices[:, 0] - vertices[:, 2], axis=1)
+    c = np.linalg.norm(vertices[:, 0] - vertices[:, 1], axis=1)
+    e1 = vertices[:, 1] - vertices[:, 0]
+    e2 = vertices[:, 2] - vertices[:, 0]
+    area2 = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])  # twice the area
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = a * b * c / (2.0 * area2)
+    return np.where(area2 > 1e-12, r, np.inf)
+
+
+def _to_fixed(uv: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    h, w = image_size
+    lo = np.array([-_FAR * w, -_FAR * h])
+    hi = np.array([(1 + _FAR) * w, (1 + _FAR) * h])
+    return np.round(np.clip(uv, lo, hi) * (1 << _SHIFT)).astype(np.int32)
+
+
+def _draw_degenerate(mask: np.ndarray, uv: np.ndarray, image_size) -> None:
+    """0-2 points or collinear points: the segment between the extreme points (1 px wide)."""
+    if len(uv) == 0:
+        return
+    centred = uv - uv.mean(0)
+    direction = np.linalg.svd(centred, full_matrices=False)[2][0] if len(uv) > 1 else np.zeros(2)
+    t = centred @ direction
+    ends = _to_fixed(uv[[np.argmin(t), np.argmax(t)]], image_size)
+    cv2.line(mask, tuple(int(v) for v in ends[0]), tuple(int(v) for v in ends[1]), 1,
+             thickness=1, lineType=cv2.LINE_8, shift=_SHIFT)
+
+
+def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None) -> np.ndarray:
+    """Rasterise the filled alpha shape of the points ``uv``.
+
+    Args:
+        uv: ``(N, 2)`` image coordinates (u = column, v = row), pixels; points may lie outside
+            the image (their triangles are clipped by the rasteriser).
+        image_size: ``(h, w)`` of the output mask.
+        alpha: keep Delaunay triangles with circumradius ``< 1 / alpha`` (pixels); ``None`` picks
+            it from the point spacing (:func:`auto_alpha_radius`); ``0`` keeps every triangle
+            (the convex hull).
+
+    Returns:
+        ``(h, w)`` bool mask. Fewer than 3 distinct points, or collinear points, give the
+        1-pixel-wide segment through them (empty for no points).
+    """
+    h, w = int(image_size[0]), int(image_size[1])
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    mask = np.zeros((h, w), dtype=np.uint8)
+    if alpha is not None and alpha < 0:
+        raise ValueError(f"alpha must be >= 0, got {alpha}")
+    pts = np.unique(uv, axis=0)
+    if len(pts) < 3:
+        _draw_degenerate(mask, pts, (h, w))
+        return mask.astype(bool)
+    try:
+        tri = Delaunay(pts)
+    except QhullError:  # collinear (or numerically so)
+        _draw_degenerate(mask, pts, (h, w))
+        return mask.astype(bool)
+    verts = pts[tri.simplices]  # (T, 3, 2)
+    radius = auto_alpha_radius(pts) if alpha is None else (np.inf if alpha == 0 else 1.0 / alpha)
+    keep = circumradii(verts) < radius
+    if not np.any(keep):
+        log.debug("alpha shape: no triangle below radius %.2f px; drawing the points", radius)
+        fixed = _to_fixed(pts, (h, w)) >> _SHIFT
+        inside = (fixed[:, 0] >= 0) & (fixed[:, 0] < w) & (fixed[:, 1] >= 0) & (fixed[:, 1] < h)
+        mask[fixed[inside, 1], fixed[inside, 0]] = 1
+        return mask.astype(bool)
+    polys = list(_to_fixed(verts[keep].reshape(-1, 2), (h, w)).reshape(-1, 3, 2))
+    # One triangle at a time would be exact but slow; fillPoly over all the (non-overlapping)
+    # Delaunay triangles fills their union in one scanline pass.
+    cv2.fillPoly(mask, polys, 1, lineType=cv2.LINE_8, shift=_SHIFT)
+    # Vertices themselves belong to the shape (thin sliver triangles may rasterise to nothing).
+    fixed = (_to_fixed(pts, (h, w)) + (1 << (_SHIFT - 1))) >> _SHIFT
+    inside = (fixed[:, 0] >= 0) & (fixed[:, 0] < w) & (fixed[:, 1] >= 0) & (fixed[:, 1] < h)
+    mask[fixed[inside, 1], fixed[inside, 0]] = 1
+    return mask.astype(bool)

@@ -1,0 +1,171 @@
+"""Amodal and visible masks of one image from completed point clouds, and the occlusion order.
+
+Per instance: the completed cloud (``(K, 3)`` in the LiDAR/sensor frame) is projected with the
+camera (:func:`seqshape.camera.project_points`); points less than ``min_depth`` in front of the
+camera are dropped; the amodal mask is the filled alpha shape of the rest
+(:mod:`seqshape.amodal.alpha`), clipped to the image.
+
+Occlusion, two rules (``order=``):
+
+* ``"pixel"`` (default): where amodal masks overlap, each pixel goes to the instance whose
+  completed surface is nearest there: the local depth of an instance at a pixel is the minimum
+  depth of its ``k`` projected points nearest to that pixel (its front surface). The visible
+  mask is the amodal mask minus the pixels won by others. The total order (for the KINS ids) is
+  a topological sort of the pairwise "in front of" relation (who wins most of the pair's overlap),
+  ties and cycles broken by median depth.
+* ``"median"``: instances are ordered by the median depth of their projected points; the visible
+  mask is the amodal mask minus the amodal masks of all instances in front.
+
+The per-pixel rule is right where the median is wrong (a long vehicle beside a short one, a
+vehicle partly ahead of another); ``benchmarks/bm_labelling.py`` measures both (docs/amodal.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import networkx as nx
+import numpy as np
+from scipy.spatial import cKDTree
+
+from seqshape.amodal.alpha import alpha_shape_mask
+
+ORDERS = ("pixel", "median")
+MIN_DEPTH = 0.5  # m in front of the camera; nearer points are dropped before projecting
+_K_LOCAL = 6
+
+
+@dataclass
+class InstanceMask:
+    """One instance of one image.
+
+    ``amodal``/``visible``: ``(h, w)`` bool; ``depth``: median depth (m) of the projected
+    points; ``order``: rank in the occlusion order (0 = front-most).
+    """
+
+    track_id: str
+    amodal: np.ndarray
+    visible: np.ndarray
+    depth: float
+    order: int = 0
+    uv: np.ndarray = field(default=None, repr=False)  # (M, 2) projected points
+    z: np.ndarray = field(default=None, repr=False)  # (M,) their depths
+
+
+def project_cloud(points, calib, image_size, min_depth: float = MIN_DEPTH):
+    """Project ``points (N, 3)`` (sensor frame) with camera 2; ``(uv (M, 2), depth (M,))``.
+
+    Points nearer than ``min_depth`` metres in front of the camera are dropped.
+    """
+    from seqshape.camera import project_points
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.zeros((0, 2)), np.zeros(0)
+    uv, depth = project_points(points, calib, cam=2)
+    uv, depth = np.asarray(uv, dtype=np.float64), np.asarray(depth, dtype=np.float64)
+    keep = np.isfinite(depth) & (depth > min_depth) & np.all(np.isfinite(uv), axis=1)
+    return uv[keep], depth[keep]
+
+
+def instance_from_projection(track_id: str, uv, depth, image_size,
+                             alpha: float | None = None) -> InstanceMask:
+    """An :class:`InstanceMask` (visible mask not yet resolved) from projected points."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    depth = np.asarray(depth, dtype=np.float64).reshape(-1)
+    amodal = alpha_shape_mask(uv, image_size, alpha=alpha)
+    med = float(np.median(depth)) if len(depth) else np.inf
+    return InstanceMask(str(track_id), amodal, amodal.copy(), med, 0, uv, depth)
+
+
+def _local_depth(inst: InstanceMask, pix_uv: np.ndarray) -> np.ndarray:
+    """Front-surface depth of ``inst`` at pixels ``pix_uv (P, 2)`` -> ``(P,)``."""
+    if len(inst.z) == 0:
+        return np.full(len(pix_uv), np.inf)
+    k = min(_K_LOCAL, len(inst.z))
+    _, idx = cKDTree(inst.uv).query(pix_uv, k=k)  # (P, k) or (P,)
+    return inst.z[idx.reshape(len(pix_uv), -1)].min(axis=1)
+
+
+def _resolve_pixel(insts: list[InstanceMask]) -> np.ndarray:
+    """Per-pixel ownership; returns ``wins (n, n)``: pixels of overlap i-vs-j won by i."""
+    n = len(insts)
+    wins = np.zeros((n, n), dtype=np.int64)
+    stack = np.stack([m.amodal for m in insts])  # (n, h, w)
+    count = stack.sum(0)
+    rows, cols = np.nonzero(count >= 2)
+    if len(rows) == 0:
+        return wins
+    pix = np.c_[cols, rows].astype(np.float64)  # (P, 2) as (u, v)
+    cover = stack[:, rows, cols]  # (n, P)
+    depth = np.full(cover.shape, np.inf)
+    for i in range(n):
+        sel = cover[i]
+        if sel.any():
+            depth[i, sel] = _local_depth(insts[i], pix[sel])
+    owner = np.argmin(depth, axis=0)  # (P,)
+    for i in range(n):
+        lose = cover[i] & (owner != i)
+        insts[i].visible[rows[lose], cols[lose]] = False
+        for j in range(n):
+            if i != j:
+                wins[i, j] = int(np.sum(cover[i] & cover[j] & (owner == i)))
+    return wins
+
+
+def _order_from_wins(wins: np.ndarray, depths: Sequence[float]) -> list[int]:
+    """Indices front to back: topological order of "i in front of j", median depth as tiebreak."""
+    n = len(depths)
+    g = nx.DiGraph()
+    g.add_nodes_from(range(n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            if wins[i, j] > wins[j, i]:
+                g.add_edge(i, j)
+            elif wins[j, i] > wins[i, j]:
+                g.add_edge(j, i)
+    try:
+        return list(nx.lexicographical_topological_sort(g, key=lambda i: (depths[i], i)))
+    except nx.NetworkXUnfeasible:  # a cycle: no consistent order, fall back to depth
+        return sorted(range(n), key=lambda i: (depths[i], i))
+
+
+def resolve_occlusion(insts: list[InstanceMask], order: str = "pixel") -> list[InstanceMask]:
+    """Fill ``visible`` and ``order`` of every instance of one image, in place; returns them."""
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+    if not insts:
+        return insts
+    for m in insts:
+        m.visible = m.amodal.copy()
+    depths = [m.depth for m in insts]
+    if order == "pixel":
+        ranking = _order_from_wins(_resolve_pixel(insts), depths)
+    else:
+        ranking = sorted(range(len(insts)), key=lambda i: (depths[i], i))
+        covered = np.zeros_like(insts[0].amodal)
+        for i in ranking:
+            insts[i].visible = insts[i].amodal & ~covered
+            covered |= insts[i].amodal
+    for rank, i in enumerate(ranking):
+        insts[i].order = rank
+    return insts
+
+
+def frame_masks(clouds: dict[str, np.ndarray], calib, image_size: tuple[int, int],
+                alpha: float | None = None, order: str = "pixel",
+                min_depth: float = MIN_DEPTH) -> list[InstanceMask]:
+    """Masks of one image from completed clouds ``{track_id: (K, 3) sensor frame}``.
+
+    Instances whose amodal mask is empty (behind the camera, outside the image) are left out.
+    """
+    insts = []
+    for tid, pts in clouds.items():
+        uv, depth = project_cloud(pts, calib, image_size, min_depth=min_depth)
+        if len(uv) == 0:
+            continue
+        inst = instance_from_projection(tid, uv, depth, image_size, alpha=alpha)
+        if inst.amodal.any():
+            insts.append(inst)
+    return resolve_occlusion(insts, order=order)
