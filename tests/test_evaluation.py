@@ -177,3 +177,49 @@ def test_sensor_to_canonical_of_oracle_is_box():
     _, estimates = predict_track(est, tr)
     can = sensor_to_canonical(estimates[0].complete, estimates[0].pose)
     np.testing.assert_allclose(np.abs(can).max(0), np.array(SIZE) / 2, atol=1e-4)
+
+
+def test_report_files_plots_and_html(dataset, tmp_path):
+    from seqshape.evaluation.html import write_track_html
+    from seqshape.evaluation.plots import write_plots
+    from seqshape.evaluation.report import PAPER_TABLE, write_metrics
+
+    val = dataset.split("val")
+    tracks = list(val)
+    ests = {"sequential": OracleEstimator(tracks, pose_noise=0.01, seed=1),
+            "baseline": OracleEstimator(tracks, pose_noise=0.1, seed=2)}
+    res = evaluate_tracks(ests, val, emd_points=64, emd_every=2, workers=0)
+    summary = write_metrics(tmp_path, res)
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    assert set(data["sequential"]) == set(data["baseline"]) == {"cd_cm", "emd_m", "trans_cm",
+                                                                "rot_deg"}
+    assert isinstance(data["cd_floor_cm"], float)
+    seq = res.of("sequential")
+    assert data["sequential"]["cd_cm"] == pytest.approx(100 * np.mean(seq["cd_m"]))
+    assert data["sequential"]["emd_m"] == pytest.approx(np.nanmean(seq["emd_m"]))
+    assert data["baseline"]["rot_deg"] == pytest.approx(
+        np.degrees(np.mean(res.of("baseline")["rot_rad"])))
+    assert data["cd_floor_cm"] == pytest.approx(data["sequential"]["cd_cm"], rel=0.05)
+    assert summary["paper"] == PAPER_TABLE
+    md = (tmp_path / "metrics.md").read_text()
+    assert "| sequential (paper) | 2.30 | 0.250 | 9.40 | 12.00 |" in md
+    assert "CD floor" in md
+    lines = (tmp_path / "per_frame.csv").read_text().splitlines()
+    assert lines[0].split(",") == list(FIELDS) and len(lines) == len(res.records["frame"]) + 1
+    for png in write_plots(tmp_path, res):
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    html = write_track_html(tmp_path / "track.html", tracks[0],
+                            {k: OracleEstimator(tracks) for k in ests}, max_points=100)
+    text = html.read_text()
+    assert "plotly" in text and "cdn.plot.ly" not in text.split("<body>")[0][-2000:]
+    assert text.count('"name":"') > 0 and len(text) > 1_000_000  # plotly.js is inlined
+
+
+def test_write_metrics_requires_both_methods(dataset, tmp_path):
+    from seqshape.errors import SeqshapeError
+    from seqshape.evaluation.report import write_metrics
+
+    tr = dataset.split("val")[0]
+    res = evaluate_tracks({"sequential": OracleEstimator([tr])}, [tr], emd_every=0, workers=0)
+    with pytest.raises(SeqshapeError, match="baseline"):
+        write_metrics(tmp_path, res)

@@ -1,1 +1,24 @@
-"""seqshape.evaluation"""
+"""Evaluation of shape and pose estimates: metrics, the per-frame runner, reports, plots.
+
+See docs/evaluation.md for exactly what is computed. Heavy modules (plots, html) are imported
+only when used.
+"""
+
+from seqshape.evaluation.metrics import (
+    cd_floor,
+    chamfer_distance,
+    earth_movers_distance,
+    emd_subsampled,
+    pose_errors,
+    rotation_error,
+    subsample,
+    subsample_pair,
+    translation_error,
+)
+from seqshape.evaluation.report import PAPER_TABLE, metrics_markdown, summarize, write_metrics
+from seqshape.evaluation.runner import EvalResult, detection_span, evaluate_tracks, predict_track
+
+__all__ = ["PAPER_TABLE", "EvalResult", "cd_floor", "chamfer_distance", "detection_span",
+           "earth_movers_distance", "emd_subsampled", "evaluate_tracks", "metrics_markdown",
+           "pose_errors", "predict_track", "rotation_error", "subsample", "subsample_pair",
+           "summarize", "translation_error", "write_metrics"]
