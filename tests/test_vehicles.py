@@ -2,17 +2,22 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import trimesh
 
-from seqshape.errors import ConfigError
+from seqshape.errors import ConfigError, DataError
 from seqshape.vehicles import (
     KINDS,
+    load_vehicle,
+    load_vehicle_folder,
     procedural_vehicle,
     sample_outer_surface,
     vehicle_library,
 )
+from seqshape.vehicles.io import canonical_rotation
 
 # ---------------------------------------------------------------- procedural bodies
 
@@ -115,3 +120,111 @@ def test_outer_surface_rejects_bad_arguments():
         sample_outer_surface(trimesh.creation.box(), n=0)
     with pytest.raises(ConfigError):
         sample_outer_surface(trimesh.Trimesh(), n=10)
+
+
+# ---------------------------------------------------------------- user meshes
+
+
+def _to_file_convention(mesh, up, forward, scale):
+    """Inverse of the loader's normalisation: canonical mesh -> a file's axes and units."""
+    rot = canonical_rotation(up, forward)
+    return trimesh.Trimesh(mesh.vertices @ rot / scale, mesh.faces, process=False)
+
+
+@pytest.mark.parametrize("ext,up,forward,scale", [
+    ("obj", "y", "-z", 0.01),    # ShapeNet-like axes, centimetres
+    ("ply", "-x", "y", 1.0),
+    ("stl", "z", "-y", 0.001),   # millimetres
+    ("glb", "y", "x", 2.0),
+    ("off", "-z", "-x", 1.0),
+])
+def test_round_trip_through_files_with_other_axes_and_units(tmp_path, ext, up, forward, scale):
+    v = procedural_vehicle("pickup", 4)
+    moved = _to_file_convention(v.mesh, up, forward, scale)
+    moved.apply_translation([3.0, -7.0, 11.0])  # files need not be centred
+    path = tmp_path / f"car.{ext}"
+    moved.export(path)
+    w = load_vehicle(path, up=up, forward=forward, scale=scale)
+    assert w.kind == "user" and w.vehicle_id == "user-car" and w.source == str(path)
+    assert w.mesh.is_watertight
+    np.testing.assert_allclose(w.mesh.bounds, v.mesh.bounds, atol=1e-5)
+    np.testing.assert_allclose(w.size, v.size, atol=1e-5)
+    # same vertex set (formats may reorder vertices)
+    a = np.unique(v.mesh.vertices.round(4), axis=0)
+    b = np.unique(w.mesh.vertices.round(4), axis=0)
+    assert a.shape == b.shape
+    np.testing.assert_allclose(a, b, atol=2e-4)
+    assert abs(w.mesh.volume - v.mesh.volume) < 1e-4 * v.mesh.volume
+
+
+def test_target_length_and_axis_errors(tmp_path):
+    box = trimesh.creation.box(extents=(1.0, 4.0, 2.0))  # long along y
+    path = tmp_path / "box.stl"
+    box.export(path)
+    v = load_vehicle(path, up="z", forward="y", target_length=5.0)
+    np.testing.assert_allclose(v.size, [5.0, 1.25, 2.5], atol=1e-9)
+    with pytest.raises(ConfigError):
+        load_vehicle(path, up="z", forward="-z")
+    with pytest.raises(ConfigError):
+        load_vehicle(path, up="w")
+    with pytest.raises(ConfigError):
+        load_vehicle(path, scale=0.0)
+
+
+@pytest.mark.parametrize("name,content", [
+    ("garbage.obj", bytes(np.random.default_rng(0).integers(0, 256, 4000, dtype=np.uint8))),
+    ("empty.obj", b""),
+    ("empty.stl", b""),
+    ("broken.ply", b"ply\nformat ascii 1.0\nelement vertex many\nend_header\n1 2 3\n"),
+    ("points.ply", b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\n"
+                   b"property float y\nproperty float z\nend_header\n0 0 0\n1 1 1\n"),
+    ("text.glb", b"this is not a glb file"),
+    ("notes.obj", b"# just a comment\nv 0 0 0\n"),
+])
+def test_malformed_files_raise_data_error_naming_the_file(tmp_path, name, content):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(DataError) as info:
+        load_vehicle(path)
+    assert name in str(info.value) and info.value.path == str(path)
+
+
+def test_missing_and_unsupported_files(tmp_path):
+    with pytest.raises(DataError, match="no such file"):
+        load_vehicle(tmp_path / "nope.obj")
+    (tmp_path / "car.fbx").write_bytes(b"x")
+    with pytest.raises(DataError, match="unsupported"):
+        load_vehicle(tmp_path / "car.fbx")
+
+
+def test_open_mesh_loads_with_a_warning(tmp_path, caplog):
+    box = trimesh.creation.box(extents=(4.0, 2.0, 1.5))
+    box.update_faces(np.arange(len(box.faces) - 2))  # remove the two triangles of one side
+    path = tmp_path / "open.obj"
+    box.export(path)
+    with caplog.at_level(logging.WARNING, logger="seqshape.vehicles"):
+        v = load_vehicle(path)
+    assert not v.mesh.is_watertight
+    assert any("not watertight" in r.message and "open.obj" in r.message for r in caplog.records)
+    np.testing.assert_allclose(v.size, [4.0, 2.0, 1.5])
+    pts = sample_outer_surface(v.mesh, n=500, seed=0)  # still usable
+    assert pts.shape == (500, 3)
+
+
+def test_folder_loading(tmp_path):
+    with pytest.raises(DataError, match="no mesh files"):
+        load_vehicle_folder(tmp_path)
+    with pytest.raises(DataError, match="not a folder"):
+        load_vehicle_folder(tmp_path / "missing")
+    # ShapeNet-like layout: same file name in different model folders, y-up, facing -z
+    for i, kind in enumerate(["sedan", "van"]):
+        v = procedural_vehicle(kind, i)
+        path = tmp_path / f"model{i}" / "models" / "model_normalized.obj"
+        path.parent.mkdir(parents=True)
+        _to_file_convention(v.mesh, "y", "-z", 1.0).export(path)
+    (tmp_path / "model0" / "readme.txt").write_text("not a mesh")
+    vehicles = load_vehicle_folder(tmp_path, up="y", forward="-z", target_length=4.5)
+    assert [v.vehicle_id for v in vehicles] == ["user-model0-models-model_normalized",
+                                                "user-model1-models-model_normalized"]
+    for v in vehicles:
+        assert abs(v.size[0] - 4.5) < 1e-9 and v.size[2] < v.size[0]
