@@ -73,7 +73,11 @@ def _plot_against(result: EvalResult, x_col: str, edges: np.ndarray, xlabel: str
         ax.set_ylabel(LABELS[key])
         ax.grid(alpha=0.3)
         ax.set_ylim(bottom=0)
-    axes[0].legend(loc="upper right", fontsize=8)
+        if not ax.lines:
+            ax.text(0.5, 0.5, f"fewer than {min_count} frames per bin", ha="center",
+                    va="center", transform=ax.transAxes, fontsize=8, color="gray")
+    if axes[0].lines:
+        axes[0].legend(loc="upper right", fontsize=8)
     fig.suptitle(f"{title} (line: mean, band: 25-75th percentile)", fontsize=10)
     fig.tight_layout()
     path = Path(path)
