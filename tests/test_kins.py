@@ -1,3 +1,4 @@
+import doctest
 import json
 
 import numpy as np
@@ -147,3 +148,10 @@ def test_coco_instances_round_trip_and_polygons(tmp_path):
     (tmp_path / "p.json").write_text(json.dumps(raw))
     with pytest.raises(DataError, match=r"annotations\[0\]\.segmentation"):
         read_coco_instances(tmp_path / "p.json")
+
+
+def test_docstring_examples():
+    import seqshape.amodal.kins as mod
+
+    result = doctest.testmod(mod)
+    assert result.attempted > 0 and result.failed == 0

@@ -64,7 +64,12 @@ def _mask_api():
 
 
 def mask_to_rle(mask) -> dict:
-    """COCO compressed RLE ``{"size": [H, W], "counts": str}`` of a boolean (H, W) mask."""
+    """COCO compressed RLE ``{"size": [H, W], "counts": str}`` of a boolean (H, W) mask.
+
+    >>> m = np.zeros((3, 4), dtype=bool); m[1, 1:3] = True
+    >>> rle = mask_to_rle(m); rle["size"], bool((rle_to_mask(rle) == m).all())
+    ([3, 4], True)
+    """
     mask = np.asarray(mask)
     if mask.ndim != 2:
         raise ValueError(f"mask must be 2-D (H, W), got shape {mask.shape}")

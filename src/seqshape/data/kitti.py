@@ -1,0 +1,494 @@
+"""KITTI tracking data: velodyne scans, ``label_02`` boxes, oxts ego motion, and tracks.
+
+Layout of a root folder (the KITTI tracking ``training/`` or ``testing/`` folder, or a scene
+written by ``seqshape scenes``)::
+
+    velodyne/SSSS/FFFFFF.bin   float32 (x, y, z, reflectance) rows, velodyne frame
+    image_02/SSSS/FFFFFF.png   left colour image
+    label_02/SSSS.txt          one box per line (below)
+    calib/SSSS.txt             see seqshape.camera
+    oxts/SSSS.txt              one GPS/IMU row (30 numbers) per frame
+
+``label_02`` columns: frame, track_id (-1 for DontCare), type, truncated, occluded, alpha,
+bbox (left, top, right, bottom; pixels), dimensions (h, w, l; m), location (x, y, z; the BOTTOM
+centre of the box in rectified camera-0 coordinates, m), rotation_y (about the camera y axis,
+which points down; 0 = facing camera x), and an optional 18th column, score.
+
+Our convention (seqshape.geometry): a box is ``pose = (x, y, z, yaw)``, its CENTRE in the
+velodyne frame and its heading about velodyne z, and ``size = (l, w, h)``. The conversion
+(:func:`label_to_pose`) goes through the calibration: ``yaw = -rotation_y - pi/2`` holds only
+for an ideally aligned calibration; the general form maps the heading vector
+``(cos ry, 0, -sin ry)`` from camera to velodyne coordinates.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from seqshape._io import atomic_write_bytes, atomic_write_text
+from seqshape.camera import KittiCalib, cam_to_velo, read_calib, velo_to_cam
+from seqshape.data.track import Track
+from seqshape.errors import DataError
+from seqshape.geometry import points_in_box, sensor_to_canonical, wrap_angle
+
+log = logging.getLogger(__name__)
+
+FRAME_RATE_HZ = 10.0
+OXTS_COLUMNS = ("lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu",
+                "ax", "ay", "az", "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu",
+                "pos_accuracy", "vel_accuracy", "navstat", "numsats", "posmode", "velmode",
+                "orimode")
+_OXTS_INT_COLUMNS = range(25, 30)
+EARTH_RADIUS = 6378137.0  # m, as in the KITTI devkit
+
+
+# ----------------------------------------------------------------------------- paths
+
+
+def seq_name(sequence: int | str) -> str:
+    """``3`` or ``"0003"`` -> ``"0003"``."""
+    try:
+        return f"{int(sequence):04d}"
+    except (TypeError, ValueError):
+        raise ValueError(f"KITTI sequence must be a number, got {sequence!r}") from None
+
+
+def velodyne_path(root, sequence, frame: int) -> Path:
+    return Path(root) / "velodyne" / seq_name(sequence) / f"{int(frame):06d}.bin"
+
+
+def image_path(root, sequence, frame: int, cam: int = 2) -> Path:
+    return Path(root) / f"image_{cam:02d}" / seq_name(sequence) / f"{int(frame):06d}.png"
+
+
+def label_path(root, sequence) -> Path:
+    return Path(root) / "label_02" / f"{seq_name(sequence)}.txt"
+
+
+def calib_path(root, sequence) -> Path:
+    return Path(root) / "calib" / f"{seq_name(sequence)}.txt"
+
+
+def oxts_path(root, sequence) -> Path:
+    return Path(root) / "oxts" / f"{seq_name(sequence)}.txt"
+
+
+def png_size(path) -> tuple[int, int]:
+    """(width, height) of a PNG file, read from its header (no decoding)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+    except OSError as exc:
+        raise DataError(path, f"cannot read image ({exc})") from None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        raise DataError(path, "not a PNG file")
+    return struct.unpack(">II", head[16:24])
+
+
+# ----------------------------------------------------------------------------- velodyne
+
+
+def read_velodyne(path) -> np.ndarray:
+    """A velodyne scan as ``(N, 4)`` float32 (x, y, z, reflectance), velodyne frame."""
+    path = Path(path)
+    try:
+        raw = np.fromfile(path, dtype="<f4")
+    except FileNotFoundError:
+        raise DataError(path, "velodyne file not found") from None
+    except OSError as exc:
+        raise DataError(path, f"unreadable velodyne file ({exc})") from None
+    if raw.size % 4:
+        raise DataError(path, f"size {raw.size * 4} bytes is not a multiple of 16 "
+                              f"(4 float32 per point): truncated or not a velodyne scan")
+    return raw.reshape(-1, 4).astype(np.float32, copy=False)
+
+
+def write_velodyne(path, points) -> None:
+    """Write ``(N, 3)`` (reflectance 0) or ``(N, 4)`` points as a KITTI ``.bin`` (atomic)."""
+    pts = np.asarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] not in (3, 4):
+        raise ValueError(f"points must be (N, 3) or (N, 4), got {pts.shape}")
+    if pts.shape[1] == 3:
+        pts = np.c_[pts, np.zeros(len(pts), np.float32)]
+    atomic_write_bytes(path, np.ascontiguousarray(pts, dtype="<f4").tobytes())
+
+
+# ----------------------------------------------------------------------------- labels
+
+
+@dataclass
+class KittiLabel:
+    """One row of a KITTI tracking label file (see the module docstring for the frames)."""
+
+    frame: int
+    track_id: int
+    type: str
+    truncated: float
+    occluded: int
+    alpha: float
+    bbox: np.ndarray          # (4,) left, top, right, bottom, pixels
+    dimensions: np.ndarray    # (3,) h, w, l, m
+    location: np.ndarray      # (3,) bottom centre, rectified camera 0, m
+    rotation_y: float
+    score: float | None = None
+    extra: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        self.bbox = np.asarray(self.bbox, dtype=np.float64).reshape(4)
+        self.dimensions = np.asarray(self.dimensions, dtype=np.float64).reshape(3)
+        self.location = np.asarray(self.location, dtype=np.float64).reshape(3)
+
+    @property
+    def is_dontcare(self) -> bool:
+        return self.type == "DontCare"
+
+
+def _parse_label(parts: list[str]) -> KittiLabel:
+    f = [float(v) for v in parts[3:]]  # ValueError on junk
+    return KittiLabel(frame=int(parts[0]), track_id=int(parts[1]), type=parts[2],
+                      truncated=f[0], occluded=int(round(f[1])), alpha=f[2], bbox=f[3:7],
+                      dimensions=f[7:10], location=f[10:13], rotation_y=f[13],
+                      score=f[14] if len(f) == 15 else None)
+
+
+def read_labels(path) -> list[KittiLabel]:
+    """Read a ``label_02`` file (17 columns, or 18 with a score); DontCare rows are kept."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DataError(path, "label file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(path, f"unreadable label file ({exc})") from None
+    labels = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(parts) not in (17, 18):
+            raise DataError(path, f"expected 17 or 18 columns, got {len(parts)}", line=lineno)
+        try:
+            lab = _parse_label(parts)
+        except ValueError as exc:
+            raise DataError(path, f"bad number ({exc})", line=lineno) from None
+        if lab.frame < 0:
+            raise DataError(path, f"negative frame {lab.frame}", line=lineno)
+        labels.append(lab)
+    return labels
+
+
+def _f(v: float) -> str:
+    return f"{float(v):.6f}"
+
+
+def format_label(lab: KittiLabel) -> str:
+    """One label line; floats with ``%.6f`` (truncated as an integer when it is one)."""
+    trunc = f"{int(lab.truncated)}" if float(lab.truncated).is_integer() else _f(lab.truncated)
+    cols = [str(int(lab.frame)), str(int(lab.track_id)), lab.type, trunc, str(int(lab.occluded)),
+            _f(lab.alpha), *map(_f, lab.bbox), *map(_f, lab.dimensions), *map(_f, lab.location),
+            _f(lab.rotation_y)]
+    if lab.score is not None:
+        cols.append(_f(lab.score))
+    return " ".join(cols)
+
+
+def write_labels(path, labels) -> None:
+    """Write labels (sorted by frame, then track id as given) atomically."""
+    if any(" " in lab.type or not lab.type for lab in labels):
+        raise ValueError("label types must be non-empty words")
+    rows = sorted(labels, key=lambda lab: lab.frame)
+    atomic_write_text(path, "".join(format_label(lab) + "\n" for lab in rows))
+
+
+def labels_by_frame(labels) -> dict[int, list[KittiLabel]]:
+    out: dict[int, list[KittiLabel]] = {}
+    for lab in labels:
+        out.setdefault(lab.frame, []).append(lab)
+    return out
+
+
+# ----------------------------------------------------------------------------- boxes
+
+
+def label_to_pose(label: KittiLabel, calib: KittiCalib) -> tuple[np.ndarray, np.ndarray]:
+    """KITTI box -> ``(pose (4,) = box centre (x, y, z) in velodyne + yaw, size (l, w, h))``."""
+    h, w, length = label.dimensions
+    centre_rect = label.location - np.array([0.0, h / 2, 0.0])  # camera y points down
+    centre = cam_to_velo(centre_rect, calib)[0]
+    ry = float(label.rotation_y)
+    heading = calib.rect_to_velo[:3, :3] @ np.array([np.cos(ry), 0.0, -np.sin(ry)])
+    yaw = float(np.arctan2(heading[1], heading[0]))
+    return np.r_[centre, yaw], np.array([length, w, h])
+
+
+def pose_to_label_fields(pose, size, calib: KittiCalib) -> dict:
+    """Inverse of :func:`label_to_pose`: ``{"location", "dimensions", "rotation_y", "alpha"}``.
+
+    ``alpha = rotation_y - atan2(x, z)`` of the box centre in camera coordinates (KITTI's
+    observation angle). The dict splats into :class:`KittiLabel`. ``rotation_y`` is chosen so
+    that :func:`label_to_pose` gives back exactly ``pose[3]``, also for a calibration whose
+    camera y axis is slightly tilted from the velodyne -z axis.
+    """
+    pose = np.asarray(pose, dtype=np.float64)
+    length, w, h = (float(v) for v in size)
+    centre_rect = velo_to_cam(pose[:3], calib)[0]
+    # label_to_pose maps (cos ry, -sin ry) through the 2x2 block m to the velodyne heading;
+    # invert that block so that the round trip is exact for any calibration
+    m = calib.rect_to_velo[:2, [0, 2]]
+    u = np.linalg.solve(m, np.array([np.cos(pose[3]), np.sin(pose[3])]))
+    ry = float(np.arctan2(-u[1], u[0]))
+    alpha = float(wrap_angle(ry - np.arctan2(centre_rect[0], centre_rect[2])))
+    return {"location": centre_rect + np.array([0.0, h / 2, 0.0]),
+            "dimensions": np.array([h, w, length]), "rotation_y": ry, "alpha": alpha}
+
+
+# ----------------------------------------------------------------------------- oxts
+
+
+def read_oxts(path) -> np.ndarray:
+    """An oxts file (one row of 30 numbers per frame) as ``(T, 30)`` float64."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DataError(path, "oxts file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(path, f"unreadable oxts file ({exc})") from None
+    rows = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(parts) != 30:
+            raise DataError(path, f"expected 30 oxts columns, got {len(parts)}", line=lineno)
+        try:
+            rows.append([float(v) for v in parts])
+        except ValueError as exc:
+            raise DataError(path, f"bad number ({exc})", line=lineno) from None
+    return np.array(rows, dtype=np.float64).reshape(-1, 30)
+
+
+def write_oxts(path, rows) -> None:
+    """Write ``(T, 30)`` oxts rows (exact float repr; the 5 status columns as integers)."""
+    rows = np.asarray(rows, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != 30:
+        raise ValueError(f"oxts rows must be (T, 30), got {rows.shape}")
+    lines = [" ".join(str(int(v)) if j in _OXTS_INT_COLUMNS else repr(float(v))
+                      for j, v in enumerate(row)) for row in rows]
+    atomic_write_text(path, "".join(line + "\n" for line in lines))
+
+
+def _rot_rpy(roll, pitch, yaw) -> np.ndarray:
+    cr, sr, cp, sp, cy, sy = (np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch),
+                              np.cos(yaw), np.sin(yaw))
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def oxts_to_poses(rows) -> np.ndarray:
+    """IMU poses ``(T, 4, 4)`` relative to the first frame (KITTI devkit's Mercator convention).
+
+    Position: ``mx = s * lon * pi * r / 180``, ``my = s * r * log(tan((90 + lat) * pi / 360))``
+    with ``s = cos(lat_0)`` and r the earth radius; rotation ``Rz(yaw) Ry(pitch) Rx(roll)``.
+    Pose t maps IMU-frame-t points to IMU-frame-0 points.
+    """
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, 30)
+    if len(rows) == 0:
+        return np.zeros((0, 4, 4))
+    scale = np.cos(np.deg2rad(rows[0, 0]))
+    rot = np.stack([_rot_rpy(r[3], r[4], r[5]) for r in rows])  # (T, 3, 3)
+    trans = np.c_[scale * rows[:, 1] * np.pi * EARTH_RADIUS / 180,
+                  scale * EARTH_RADIUS * np.log(np.tan((90 + rows[:, 0]) * np.pi / 360)),
+                  rows[:, 2]]  # (T, 3), millions of metres: subtract before rotating
+    out = np.zeros((len(rows), 4, 4))
+    out[:, :3, :3] = rot[0].T @ rot
+    out[:, :3, 3] = (trans - trans[0]) @ rot[0]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def poses_to_oxts(poses, lat0: float = 49.011, lon0: float = 8.423, alt0: float = 112.0,
+                  heading0: float = 0.0) -> np.ndarray:
+    """Oxts rows ``(T, 30)`` for IMU poses ``(T, 4, 4)`` (made relative to the first one).
+
+    The first frame sits at (lat0, lon0, alt0) with yaw ``heading0`` (rad, 0 = east). Only
+    lat, lon, alt, roll, pitch, yaw and the status columns (navstat 4, numsats 10, modes 5, as
+    for a good RTK fix) are filled; velocities and accelerations are 0. ``oxts_to_poses``
+    of the result gives back the relative poses.
+    """
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    if len(poses) == 0:
+        return np.zeros((0, 30))
+    scale = np.cos(np.deg2rad(lat0))
+    start = np.eye(4)
+    start[:3, :3] = _rot_rpy(0.0, 0.0, heading0)
+    start[:3, 3] = [scale * lon0 * np.pi * EARTH_RADIUS / 180,
+                    scale * EARTH_RADIUS * np.log(np.tan((90 + lat0) * np.pi / 360)), alt0]
+    absolute = start @ np.linalg.inv(poses[0]) @ poses  # (T, 4, 4)
+    rows = np.zeros((len(poses), 30))
+    mx, my = absolute[:, 0, 3], absolute[:, 1, 3]
+    rows[:, 1] = mx * 180 / (np.pi * EARTH_RADIUS * scale)
+    rows[:, 0] = 360 / np.pi * np.arctan(np.exp(my / (scale * EARTH_RADIUS))) - 90
+    rows[0, :2] = lat0, lon0  # exact, so that the reader's scale is cos(lat0)
+    rows[:, 2] = absolute[:, 2, 3]
+    r = absolute[:, :3, :3]
+    rows[:, 3] = np.arctan2(r[:, 2, 1], r[:, 2, 2])
+    rows[:, 4] = -np.arcsin(np.clip(r[:, 2, 0], -1, 1))
+    rows[:, 5] = np.arctan2(r[:, 1, 0], r[:, 0, 0])
+    rows[:, 25:30] = [4, 10, 5, 5, 5]
+    return rows
+
+
+def imu_to_velo_poses(imu_poses, calib: KittiCalib) -> np.ndarray:
+    """IMU poses ``(T, 4, 4)`` -> velodyne poses: frame-t velodyne -> frame-0 velodyne."""
+    tv = calib.imu_to_velo
+    return tv @ np.asarray(imu_poses, dtype=np.float64) @ np.linalg.inv(tv)
+
+
+# ----------------------------------------------------------------------------- sequences
+
+
+class KittiTrackingSequence:
+    """One sequence of a KITTI tracking root folder (layout in the module docstring).
+
+    ``frames`` are the frame indices with a velodyne scan (or, without velodyne, with an
+    image, or else with labels); ``labels`` the label rows (empty without a label file);
+    ``calib`` the calibration (its ``image_size`` taken from the first image when there is
+    one); ``oxts`` the ``(T, 30)`` rows or None; ``ego_poses`` the velodyne poses
+    ``(T, 4, 4)`` (frame-t velodyne -> frame-0 velodyne) from oxts, or None.
+    """
+
+    def __init__(self, root, sequence: int | str):
+        self.root = Path(root)
+        self.sequence = seq_name(sequence)
+        if not self.root.is_dir():
+            raise DataError(self.root, "no such KITTI root folder")
+        lpath = label_path(self.root, self.sequence)
+        self.labels: list[KittiLabel] = read_labels(lpath) if lpath.is_file() else []
+        self.labels_by_frame = labels_by_frame(self.labels)
+        self.frames = self._find_frames()
+        opath = oxts_path(self.root, self.sequence)
+        self.oxts: np.ndarray | None = read_oxts(opath) if opath.is_file() else None
+        self._calib: KittiCalib | None = None
+
+    def _find_frames(self) -> list[int]:
+        for folder, ext in (("velodyne", ".bin"), ("image_02", ".png")):
+            d = self.root / folder / self.sequence
+            if d.is_dir():
+                frames = sorted(int(p.stem) for p in d.glob(f"*{ext}") if p.stem.isdigit())
+                if frames:
+                    return frames
+        return sorted(self.labels_by_frame)
+
+    @property
+    def calib(self) -> KittiCalib:
+        if self._calib is None:
+            calib = read_calib(calib_path(self.root, self.sequence))
+            if self.frames and self.image_path(self.frames[0]).is_file():
+                calib.image_size = png_size(self.image_path(self.frames[0]))
+            self._calib = calib
+        return self._calib
+
+    @property
+    def ego_poses(self) -> np.ndarray | None:
+        if self.oxts is None:
+            return None
+        return imu_to_velo_poses(oxts_to_poses(self.oxts), self.calib)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def velodyne_path(self, frame: int) -> Path:
+        return velodyne_path(self.root, self.sequence, frame)
+
+    def image_path(self, frame: int, cam: int = 2) -> Path:
+        return image_path(self.root, self.sequence, frame, cam)
+
+    def velodyne(self, frame: int) -> np.ndarray:
+        """The scan of ``frame``, ``(N, 4)`` float32."""
+        return read_velodyne(self.velodyne_path(frame))
+
+    def frame_labels(self, frame: int) -> list[KittiLabel]:
+        return self.labels_by_frame.get(frame, [])
+
+    @staticmethod
+    def sequences(root) -> list[str]:
+        """Sequence names found under ``root`` (from label_02, velodyne or calib)."""
+        root = Path(root)
+        names = {p.stem for p in (root / "label_02").glob("*.txt")}
+        names |= {p.name for p in (root / "velodyne").glob("*") if p.is_dir()}
+        names |= {p.stem for p in (root / "calib").glob("*.txt")}
+        return sorted(n for n in names if n.isdigit())
+
+
+def crop_box(points, pose, size, margin: float = 0.2, ground: float | None = 0.15) -> np.ndarray:
+    """Points ``(N, 3+)`` inside a posed box enlarged by ``margin`` (m), as ``(M, 3)`` float32.
+
+    With ``ground`` set, points lower than the box bottom + ``ground`` (in the box's own
+    frame) are dropped: the road under the wheels.
+    """
+    pts = np.asarray(points)[:, :3]
+    keep = points_in_box(pts, size, pose, margin)
+    if ground is not None and keep.any():
+        local_z = sensor_to_canonical(pts[keep].astype(np.float64), pose)[:, 2]
+        idx = np.flatnonzero(keep)
+        keep[idx[local_z < -float(size[2]) / 2 + ground]] = False
+    return np.ascontiguousarray(pts[keep], dtype=np.float32)
+
+
+def extract_tracks(seq: KittiTrackingSequence, margin: float = 0.2, remove_ground: bool = True,
+                   types=("Car", "Van"), min_points: int = 0,
+                   ground_height: float = 0.15) -> list[Track]:
+    """Tracks of one sequence: per track id, each frame's LiDAR points inside its 3D box.
+
+    Points are in that frame's velodyne frame (float32 (N, 3)); ``poses`` the boxes
+    (:func:`label_to_pose`); ``size`` the median (l, w, h) over frames; ``timestamps``
+    frame / 10 Hz; ``complete`` None. A track is kept when at least one frame has
+    ``min_points`` points. ``meta``: source, sequence, kitti_track_id, type, frames, sensor,
+    and ``ego_poses`` (per frame, velodyne frame t -> frame 0 of the sequence, 4x4 lists)
+    when oxts are present. Track ids are ``"SSSS_TTTT"``.
+    """
+    wanted = set(types) if types is not None else None
+    calib = seq.calib
+    ego = seq.ego_poses
+    if ego is not None and len(ego) < (max(seq.labels_by_frame, default=-1) + 1):
+        log.warning("%s: oxts has %d rows but labels reach frame %d; ego poses dropped",
+                    oxts_path(seq.root, seq.sequence), len(ego), max(seq.labels_by_frame))
+        ego = None
+    per_track: dict[int, list[tuple[int, np.ndarray, np.ndarray, np.ndarray, str]]] = {}
+    for frame in sorted(seq.labels_by_frame):
+        boxes = [lab for lab in seq.labels_by_frame[frame]
+                 if lab.track_id >= 0 and (wanted is None or lab.type in wanted)]
+        if not boxes:
+            continue
+        scan = seq.velodyne(frame)
+        for lab in boxes:
+            pose, size = label_to_pose(lab, calib)
+            pts = crop_box(scan, pose, size, margin, ground_height if remove_ground else None)
+            per_track.setdefault(lab.track_id, []).append((frame, pts, pose, size, lab.type))
+    tracks = []
+    for tid in sorted(per_track):
+        rows = per_track[tid]
+        if max(len(r[1]) for r in rows) < min_points:
+            continue
+        frames = [r[0] for r in rows]
+        meta = {"source": "kitti-tracking", "sequence": seq.sequence, "kitti_track_id": tid,
+                "type": rows[0][4], "frames": frames, "sensor": "hdl64",
+                "root": str(seq.root)}
+        if ego is not None:
+            meta["ego_poses"] = ego[frames].tolist()
+        tracks.append(Track(
+            track_id=f"{seq.sequence}_{tid:04d}", points=[r[1] for r in rows],
+            poses=np.stack([r[2] for r in rows]), complete=None,
+            size=np.median(np.stack([r[3] for r in rows]), axis=0),
+            timestamps=np.array(frames, dtype=np.float64) / FRAME_RATE_HZ, meta=meta))
+    log.info("sequence %s: %d tracks extracted", seq.sequence, len(tracks))
+    return tracks
