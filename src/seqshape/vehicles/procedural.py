@@ -11,7 +11,7 @@ closed by caps. Four wheels (closed cylinders) sit in the arches. The result is 
 
 Build frame: x from the rear (0) to the front (L), z up from the ground (0). The returned mesh is
 moved to the canonical frame: centre of the bounding box (wheels included) at the origin, x
-forward, y left, z up, metres. The pickup's bed is modelled closed (as with a tonneau cover).
+forward, y left, z up, metres. The pickup has an open bed (walls and tailgate 6 cm thick).
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ _RANGES: dict[str, dict[str, tuple[float, float]]] = {
                 roh=(0.90, 1.15), tumble=(4, 8)),
     "pickup": dict(length=(5.0, 5.8), width=(1.85, 2.05), height=(1.75, 1.95), hood=(0.25, 0.30),
                    trunk=(0.30, 0.36), ws=(33, 40), rw=(80, 87), belt=(0.58, 0.63),
-                   deck=(0.60, 0.66), nose=(0.54, 0.60), clearance=(0.21, 0.27),
+                   deck=(0.64, 0.70), nose=(0.54, 0.60), clearance=(0.21, 0.27),
                    wheel_r=(0.37, 0.41), wheel_w=(0.25, 0.29), foh=(0.85, 1.00),
                    roh=(1.15, 1.35), tumble=(8, 14)),
 }
@@ -66,6 +66,8 @@ _MIX = ("sedan", "suv", "hatchback", "sedan", "pickup", "suv", "sedan", "van", "
 _ROOF_CROWN = 0.025   # m, roof centre above its edges
 _MIN_ROOF = 0.35      # m, shortest flat roof
 _WELL_GAP = 0.05      # m, clearance between tyre and arch / well wall
+_END_R = 0.12         # m, radius of the rounded front and rear ends
+_RAIL = 0.06          # m, thickness of the pickup bed's side walls and tailgate
 
 
 @dataclass(frozen=True)
@@ -96,6 +98,7 @@ class VehicleParams:
     front_overhang: float
     rear_overhang: float
     tumblehome_deg: float
+    bed_depth: float = 0.0  # open pickup bed depth below the rail (0: closed deck)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -107,11 +110,25 @@ class VehicleParams:
             raise ConfigError("overhangs too short for the wheel arches")
         if self.nose_height < 2 * self.wheel_radius:
             raise ConfigError("nose_height must be above the wheel tops")
+        if self.bed_depth > 0 and self.bed_floor < 2 * self.wheel_radius + _WELL_GAP + 0.03:
+            raise ConfigError("bed_depth too large: the bed floor would cut the wheel arches")
 
     @property
     def wheel_x(self) -> tuple[float, float]:
         """Axle positions (front, rear) in the build frame (x from the rear end)."""
         return self.length - self.front_overhang, self.rear_overhang
+
+    @property
+    def bed_floor(self) -> float:
+        """Height of the open bed's floor (m); the deck height when there is no bed."""
+        return self.deck_height - self.bed_depth
+
+    @property
+    def bed_x(self) -> tuple[float, float] | None:
+        """Build-frame x range (rear, front) of the open bed, or None."""
+        if self.bed_depth <= 0 or self.trunk_frac * self.length < 0.6:
+            return None
+        return _END_R + _RAIL, self.trunk_frac * self.length - 0.08
 
 
 def sample_params(kind: str, rng: np.random.Generator) -> VehicleParams:
@@ -120,13 +137,18 @@ def sample_params(kind: str, rng: np.random.Generator) -> VehicleParams:
         raise ConfigError(f"unknown vehicle kind {kind!r}; choose from {KINDS}")
     v = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in _RANGES[kind].items()}
     h = v["height"]
+    bed_depth = 0.0
+    if kind == "pickup":  # as deep as the rear wheel arches allow, up to 0.55 m
+        floor = 2 * v["wheel_r"] + _WELL_GAP + 0.05
+        bed_depth = min(float(rng.uniform(0.40, 0.55)), v["deck"] * h - floor)
     return VehicleParams(
         kind=kind, length=v["length"], width=v["width"], height=h, hood_frac=v["hood"],
         cabin_frac=1.0 - v["hood"] - v["trunk"], trunk_frac=v["trunk"],
         windshield_deg=v["ws"], rear_window_deg=v["rw"], belt_height=v["belt"] * h,
         deck_height=v["deck"] * h, nose_height=v["nose"] * h,
         ground_clearance=v["clearance"], wheel_radius=v["wheel_r"], wheel_width=v["wheel_w"],
-        front_overhang=v["foh"], rear_overhang=v["roh"], tumblehome_deg=v["tumble"])
+        front_overhang=v["foh"], rear_overhang=v["roh"], tumblehome_deg=v["tumble"],
+        bed_depth=max(bed_depth, 0.0))
 
 
 def _top_profile(p: VehicleParams, x: np.ndarray) -> np.ndarray:
@@ -154,20 +176,27 @@ def _top_profile(p: VehicleParams, x: np.ndarray) -> np.ndarray:
 def _stations(p: VehicleParams, end_r: float) -> np.ndarray:
     """Sorted x positions of the cross-sections: ~8 cm apart, ~3 cm over the wheel arches."""
     L = p.length
-    xs = [np.linspace(end_r, L - end_r, int((L - 2 * end_r) / 0.09) + 1)]
+    xs = [np.linspace(end_r, L - end_r, int((L - 2 * end_r) / 0.1) + 1)]
     arch = p.wheel_radius + _WELL_GAP
     for wx in p.wheel_x:
-        xs.append(wx + np.linspace(-arch, arch, 19))
+        xs.append(wx + np.linspace(-arch, arch, 15))
         xs.append(wx + np.array([-arch - 0.01, arch + 0.01]))
+    if p.bed_x is not None:
+        b0, b1 = p.bed_x
+        xs.append(np.array([b0, b0 + 0.015, b1 - 0.015, b1]))
     x = np.unique(np.round(np.concatenate(xs), 5))
     keep = np.concatenate([[True], np.diff(x) > 0.005])
     return x[keep]
 
 
-def _half_section(p, hw, zf, zs, zt, n_side=6, n_corner=5):
-    """(m, 2) points (y, z) of the left half of a cross-section, bottom centre to top centre."""
+def _half_section(p, hw, zf, zs, zt, bed=False, n_side=6, n_corner=5):
+    """(m, 2) points (y, z) of the left half of a cross-section, bottom centre to top centre.
+
+    The count is the same for every section; with ``bed`` the top is an open pickup bed (side
+    wall of thickness _RAIL down to ``p.bed_floor``), otherwise a rounded roof or deck.
+    """
     well_in = hw - p.wheel_width - 2 * _WELL_GAP
-    rc = min(0.16, 0.4 * (zt - zs))
+    rc = 0.03 if bed else min(0.16, 0.4 * (zt - zs))
     tumble = np.tan(np.radians(p.tumblehome_deg))
 
     def half_width(z):
@@ -179,13 +208,18 @@ def _half_section(p, hw, zf, zs, zt, n_side=6, n_corner=5):
     wt = half_width(zt - rc)
     th = np.linspace(0.0, np.pi / 2, n_corner + 1)[1:]
     pts += list(zip(wt - rc + rc * np.cos(th), zt - rc + rc * np.sin(th), strict=True))
-    pts.append((0.0, zt + _ROOF_CROWN * min(1.0, (zt - zs) / 0.5)))
+    if bed:
+        pts += [(wt - _RAIL, zt), (wt - _RAIL, p.bed_floor), (0.0, p.bed_floor)]
+    else:
+        crown = _ROOF_CROWN * min(1.0, (zt - zs) / 0.5)
+        pts += [((wt - rc) * f, zt + crown * (1 - f * f)) for f in (0.66, 0.33)]
+        pts.append((0.0, zt + crown))
     return np.asarray(pts)
 
 
 def _body(p: VehicleParams) -> trimesh.Trimesh:
     """Closed lofted body (no wheels) in the build frame."""
-    end_r = 0.12
+    end_r = _END_R
     x = _stations(p, end_r)
     L = p.length
     s_front, s_rear = L - x, x
@@ -202,9 +236,12 @@ def _body(p: VehicleParams) -> trimesh.Trimesh:
         zs = np.where(inside, np.maximum(zs, za), zs)
     zt = np.maximum(_top_profile(p, x), zs + 0.15)
 
+    bed = np.zeros(len(x), dtype=bool)
+    if p.bed_x is not None:
+        bed = (x > p.bed_x[0] + 0.01) & (x < p.bed_x[1] - 0.01)
     rings = []
     for i in range(len(x)):
-        half = _half_section(p, hw[i], zf[i], zs[i], zt[i])
+        half = _half_section(p, hw[i], zf[i], zs[i], zt[i], bed=bed[i])
         ring = np.concatenate([half, half[-2:0:-1] * [-1.0, 1.0]])  # (K, 2): y, z
         rings.append(np.column_stack([np.full(len(ring), x[i]), ring]))
     # rounded ends: shrink the end sections towards their centre over a quarter circle
