@@ -1,0 +1,119 @@
+"""GT-Accumulation: the paper's shape from boxes alone, and track export for fine-tuning.
+
+A track's partial segments (each in its frame's sensor frame) are mapped into the canonical
+vehicle frame with the ground-truth poses (``sensor_to_canonical``), concatenated, and mirrored
+about the heading axis (the canonical x axis: ``y -> -y``, vehicles being left-right
+symmetric). The result, thinned on a voxel grid so its density is even, is then placed back in
+every frame with that frame's pose (``canonical_to_sensor``). Frames whose pose is unknown
+(NaN) get an empty cloud.
+
+:func:`export_tracks` writes KITTI tracks as a :class:`~seqshape.data.TrackDataset` whose
+``complete`` shape is this mirrored accumulation, so ``seqshape train --data DIR`` can fine-tune
+the sequential model on the very data to be labelled, as the paper does for SC-GT.
+"""
+
+from __future__ import annotations
+
+import logging
+import zlib
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from seqshape.data.track import Track
+from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+
+log = logging.getLogger(__name__)
+
+VOXEL = 0.05  # m: default grid of the accumulated cloud
+BOX_MARGIN = 0.10  # m: accumulated points farther than this outside the box are dropped
+
+
+def mirror_y(points) -> np.ndarray:
+    """Reflect canonical points about the heading (x) axis: ``(x, y, z) -> (x, -y, z)``."""
+    out = np.array(points, dtype=np.float32, copy=True).reshape(-1, 3)
+    out[:, 1] *= -1
+    return out
+
+
+def voxel_downsample(points, voxel: float) -> np.ndarray:
+    """One point per occupied ``voxel`` cell (the mean of its points); ``(M, 3)`` float32."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if voxel <= 0 or len(points) == 0:
+        return points.astype(np.float32)
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inv.reshape(-1), points)
+    return (sums / counts[:, None]).astype(np.float32)
+
+
+def accumulate_canonical(track: Track, mirror: bool = True, voxel: float = VOXEL,
+                         box_margin: float | None = BOX_MARGIN) -> np.ndarray:
+    """All of ``track``'s points in its canonical frame, ``(M, 3)`` float32.
+
+    Args:
+        track: points per frame in the sensor frame and ground-truth ``poses``; frames with a
+            NaN pose are skipped.
+        mirror: add the reflection about the heading axis (:func:`mirror_y`).
+        voxel: thinning grid in metres (0 keeps every point).
+        box_margin: drop points farther than this outside the ``track.size`` box (None keeps
+            all); cropping was already done with a margin, this removes what leaked in.
+    """
+    parts = [sensor_to_canonical(p, pose) for p, pose in zip(track.points, track.poses,
+                                                               strict=True)
+             if len(p) and np.all(np.isfinite(pose))]
+    if not parts:
+        return np.zeros((0, 3), np.float32)
+    pts = np.concatenate(parts).astype(np.float32)
+    if box_margin is not None and np.all(np.asarray(track.size) > 0):
+        half = np.asarray(track.size) / 2 + box_margin
+        pts = pts[np.all(np.abs(pts) <= half, axis=1)]
+    if mirror:
+        pts = np.concatenate([pts, mirror_y(pts)])
+    return voxel_downsample(pts, voxel)
+
+
+def place_in_frames(canonical, poses) -> list[np.ndarray]:
+    """A canonical cloud placed with each pose ``(T, 4)``: T arrays ``(M, 3)`` (empty if NaN)."""
+    canonical = np.asarray(canonical, dtype=np.float32).reshape(-1, 3)
+    return [canonical_to_sensor(canonical, pose) if np.all(np.isfinite(pose))
+            else np.zeros((0, 3), np.float32) for pose in np.asarray(poses).reshape(-1, 4)]
+
+
+def gt_accumulation_clouds(track: Track, **kwargs) -> list[np.ndarray]:
+    """GT-Accumulation of one track: the mirrored accumulation in every frame's sensor frame."""
+    return place_in_frames(accumulate_canonical(track, **kwargs), track.poses)
+
+
+def export_tracks(tracks: Sequence[Track], out: str | Path, val_fraction: float = 0.2,
+                  min_points: int = 50, **kwargs):
+    """Write ``tracks`` as a TrackDataset whose ``complete`` is the mirrored accumulation.
+
+    Tracks with fewer than ``min_points`` accumulated points are left out (their reference
+    shape would be meaningless). About ``val_fraction`` of the tracks (chosen by a stable hash of
+    the track id) go to the "val" split, the rest to "train". Returns the opened dataset.
+    """
+    from seqshape.data.dataset import write_dataset
+
+    if not 0 <= val_fraction < 1:
+        raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
+    kept = []
+    for tr in tracks:
+        complete = accumulate_canonical(tr, **kwargs)
+        if len(complete) < min_points:
+            log.info("export: track %s skipped (%d accumulated points)", tr.track_id,
+                     len(complete))
+            continue
+        h = zlib.crc32(tr.track_id.encode()) % 1000 / 1000
+        meta = {**tr.meta, "split": "val" if h < val_fraction else "train",
+                "complete_source": "mirrored-accumulation"}
+        kept.append(Track(tr.track_id, tr.points, tr.poses, complete, tr.size, tr.timestamps,
+                          meta))
+    if not kept:
+        raise ValueError("no track has enough points to export")
+    if not any(t.meta["split"] == "val" for t in kept) and len(kept) > 1 and val_fraction > 0:
+        kept[-1].meta["split"] = "val"
+    return write_dataset(out, kept, config={"source": "seqshape label --export-tracks",
+                                            "val_fraction": val_fraction})

@@ -1,0 +1,189 @@
+"""Associating per-frame instances (segmented LiDAR points + 2D masks) into tracks.
+
+Frame by frame, live tracks are matched to the frame's detections by the Hungarian algorithm
+(``scipy.optimize.linear_sum_assignment``) on the cost
+
+    cost = |c_pred - c_det| / gate + iou_weight * (1 - IoU(mask_last, mask_det)),
+
+where ``c`` are 3D centroids (the median of the instance's points) in a common frame (the
+sequence's first velodyne frame when ego poses are given, else each frame's sensor frame),
+``c_pred`` is the track's last centroid extrapolated at constant velocity, and ``mask_last`` the
+track's last 2D mask. Pairs farther apart than ``gate`` metres are forbidden. Unmatched
+detections start new tracks; a track unmatched for more than ``max_age`` frames ends.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+_FORBIDDEN = 1e6
+
+
+@dataclass
+class Detection:
+    """One instance of one frame: ``centroid (3,)`` in the common frame, ``mask (h, w)`` bool."""
+
+    frame: int
+    centroid: np.ndarray
+    mask: np.ndarray
+    index: int = 0  # position in its frame's detection list
+
+
+@dataclass
+class _Live:
+    track: int
+    frames: list[int] = field(default_factory=list)
+    centroids: list[np.ndarray] = field(default_factory=list)
+    mask: np.ndarray | None = None
+
+    def predict(self, frame: int) -> np.ndarray:
+        c = self.centroids[-1]
+        if len(self.centroids) < 2:
+            return c
+        dt = self.frames[-1] - self.frames[-2]
+        vel = (self.centroids[-1] - self.centroids[-2]) / max(dt, 1)
+        return c + vel * (frame - self.frames[-1])
+
+
+def _mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    inter = np.logical_and(a, b).sum()
+    union = np.logical_or(a, b).sum()
+    return float(inter / union) if union else 0.0
+
+
+def to_common_frame(centroid, ego_pose) -> np.ndarray:
+    """A sensor-frame point ``(3,)`` mapped by a ``(4, 4)`` ego pose (frame t -> frame 0)."""
+    c = np.asarray(centroid, dtype=np.float64)
+    if ego_pose is None:
+        return c
+    e = np.asarray(ego_pose, dtype=np.float64)
+    return e[:3, :3] @ c + e[:3, 3]
+
+
+def associate(frames: Sequence[Sequence[Detection]], gate: float = 3.0,
+              iou_weight: float = 1.0, max_age: int = 3) -> list[list[int]]:
+    """Track ids (0, 1, ...) for the detections of consecutive frames.
+
+    ``frames[i]`` lists frame i's detections (their ``frame`` fields must increase with i).
+    Returns, per frame, the track id of each detection, in the same order.
+    """
+    live: list[_Live] = []
+    next_id = 0
+    out: list[list[int]] = []
+    for dets in frames:
+        ids = [-1] * len(dets)
+        if dets:
+            frame = dets[0].frame
+            live = [t for t in live if frame - t.frames[-1] <= max_age + 1]
+            if live:
+                cost = np.full((len(live), len(dets)), _FORBIDDEN)
+                for i, t in enumerate(live):
+                    pred = t.predict(frame)
+                    for j, d in enumerate(dets):
+                        dist = float(np.linalg.norm(pred - d.centroid))
+                        if dist <= gate:
+                            cost[i, j] = dist / gate + iou_weight * (1 - _mask_iou(t.mask, d.mask))
+                rows, cols = linear_sum_assignment(cost)
+                for r, c in zip(rows, cols, strict=True):
+                    if cost[r, c] < _FORBIDDEN:
+                        ids[c] = live[r].track
+                        live[r].frames.append(frame)
+                        live[r].centroids.append(np.asarray(dets[c].centroid, np.float64))
+                        live[r].mask = dets[c].mask
+            for j, d in enumerate(dets):
+                if ids[j] < 0:
+                    ids[j] = next_id
+                    live.append(_Live(next_id, [d.frame], [np.asarray(d.centroid, np.float64)],
+                                      d.mask))
+                    next_id += 1
+        out.append(ids)
+    return out
+
+
+# ----------------------------------------------------------------------------- sc-seg input
+
+
+def segment_frame(scan, calib, masks, min_depth: float = 1.0, **diffusion_kwargs):
+    """Points of each 2D instance of one frame: a list (one per mask) of ``(N_i, 3)`` float32.
+
+    ``scan (N, 3+)`` is the velodyne frame; ground points are removed
+    (:func:`~seqshape.amodal.diffusion.ground_mask`), the rest projected with camera 2, and the
+    points inside the image labelled by :func:`~seqshape.amodal.diffusion.diffuse_labels`.
+    """
+    from seqshape.amodal.diffusion import diffuse_labels, ground_mask
+    from seqshape.camera import in_image, project_points
+
+    pts = np.asarray(scan, dtype=np.float64)[:, :3]
+    pts = pts[~ground_mask(pts)]
+    uv, depth = project_points(pts, calib)
+    keep = in_image(uv, depth, calib, min_depth=min_depth)
+    pts, uv = pts[keep], uv[keep]
+    labels = diffuse_labels(pts, uv, masks, **diffusion_kwargs)
+    return [pts[labels == m].astype(np.float32) for m in range(len(masks))]
+
+
+def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0,
+                     categories=None) -> list:
+    """sc-seg tracks of a :class:`~seqshape.data.kitti.KittiTrackingSequence`.
+
+    Reads the COCO instance masks (``instances_path``; images matched by ``file_name``
+    ``SSSS/FFFFFF.png``), segments every frame (:func:`segment_frame`), drops instances with
+    fewer than ``min_points`` points, associates the rest (:func:`associate`; centroids in the
+    sequence's first velodyne frame via the oxts ego poses when present) and returns a list of
+    :class:`~seqshape.amodal.refine.TrackInput` (no ground-truth poses; ``category_id`` the
+    most frequent category of the track's masks).
+    """
+    from pathlib import Path
+
+    from seqshape._progress import progress
+    from seqshape.amodal.kins import read_coco_instances, rle_to_mask
+    from seqshape.amodal.refine import TrackInput
+    from seqshape.errors import DataError
+
+    instances_path = Path(instances_path)
+    if not instances_path.is_file():
+        raise DataError(instances_path, "2D instance masks not found (sc-seg needs COCO "
+                                        "instance JSON; pass --instances)")
+    doc = read_coco_instances(instances_path)
+    by_name = {img["file_name"]: img["id"] for img in doc["images"]}
+    anns: dict = {}
+    for a in doc["annotations"]:
+        if categories is None or a["category_id"] in categories:
+            anns.setdefault(a["image_id"], []).append(a)
+    ego = seq.ego_poses
+    calib = seq.calib
+    per_frame, det_points, det_cats = [], [], []
+    for frame in progress(seq.frames, desc=f"segment {seq.sequence}", unit="frame"):
+        image_id = by_name.get(f"{seq.sequence}/{frame:06d}.png")
+        fa = anns.get(image_id, []) if image_id is not None else []
+        masks = [rle_to_mask(a["segmentation"]) for a in fa]
+        parts = segment_frame(seq.velodyne(frame), calib, masks) if masks else []
+        dets, pts, cats = [], [], []
+        for m, (a, p) in enumerate(zip(fa, parts, strict=True)):
+            if len(p) < min_points:
+                continue
+            pose = None if ego is None or frame >= len(ego) else ego[frame]
+            c = to_common_frame(np.median(p, axis=0), pose)
+            dets.append(Detection(frame, c, masks[m], len(dets)))
+            pts.append(p)
+            cats.append(int(a["category_id"]))
+        per_frame.append(dets)
+        det_points.append(pts)
+        det_cats.append(cats)
+    ids = associate(per_frame, gate=gate)
+    tracks: dict[int, TrackInput] = {}
+    cat_votes: dict[int, list[int]] = {}
+    for dets, pts, cats, tids in zip(per_frame, det_points, det_cats, ids, strict=True):
+        for d, p, c, t in zip(dets, pts, cats, tids, strict=True):
+            tr = tracks.setdefault(t, TrackInput(f"{seq.sequence}_seg{t:04d}", [], [], None,
+                                                 4, t))
+            tr.frames.append(d.frame)
+            tr.points.append(p)
+            cat_votes.setdefault(t, []).append(c)
+    for t, tr in tracks.items():
+        tr.category_id = int(np.bincount(cat_votes[t]).argmax())
+    return [tracks[t] for t in sorted(tracks)]

@@ -1,0 +1,164 @@
+"""Segmenting a LiDAR frame with 2D instance masks: ground removal and LDLS-style diffusion.
+
+Ground removal (:func:`ground_mask`): planes are fitted by RANSAC (``iterations`` random
+triples) to the low points (z below the ``low_quantile`` of the cloud plus 0.5 m); only nearly
+horizontal planes (normal within ``max_tilt_deg`` of +z) count; the plane with most inliers is
+refitted by least squares to them, and every point less than ``threshold`` metres above it (or
+below it) is ground. When no plane is found (too few points) the fallback is the height rule
+``z < -sensor_height + threshold`` (KITTI's HDL-64E is 1.73 m above the road).
+
+Label diffusion (:func:`diffuse_labels`), after LDLS (Wang et al. 2019), on the CPU with
+scipy.sparse: nodes are the points projecting into the image (in front of the camera); each
+point is linked to the pixel it projects to, which carries a fixed label (one of the masks, or
+background when no mask covers it); points are linked to their ``k`` nearest neighbours in 3D
+with weights ``exp(-d^2 / (2 sigma^2))`` (zero beyond ``max_edge`` metres), each row
+normalised to sum 1 (as LDLS's transition matrix: sparse and dense regions alike). Label scores
+``L (N, C)`` iterate ``L <- rownorm(W L + lam * Y)`` from ``L = Y`` (``Y`` the pixel labels),
+so a point keeps its pixel's label only when its 3D neighbourhood agrees: background points seen
+through a mask (a wall behind a car, or the ground inside a dilated mask) are pulled back to
+background by their neighbours. A point's label is the argmax; then each instance keeps only
+its largest cluster (connected components of its points at ``cluster_gap`` metres), which drops
+the remaining strays.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+log = logging.getLogger(__name__)
+
+BACKGROUND = -1
+
+
+def _fit_plane(p: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares plane ``n . x + d = 0`` (unit n, n_z > 0) through ``p (M, 3)``."""
+    c = p.mean(0)
+    n = np.linalg.svd(p - c, full_matrices=False)[2][-1]
+    n = n if n[2] >= 0 else -n
+    return n, float(-n @ c)
+
+
+def ground_mask(points, threshold: float = 0.2, sensor_height: float = 1.73,
+                iterations: int = 100, max_tilt_deg: float = 10.0, low_quantile: float = 0.3,
+                seed: int = 0) -> np.ndarray:
+    """Boolean ``(N,)``: which of the ``(N, 3)`` sensor-frame points are ground (module doc)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    z_lo = np.quantile(points[:, 2], low_quantile) + 0.5
+    cand = points[points[:, 2] <= z_lo]
+    best, best_count = None, 0
+    if len(cand) >= 3:
+        rng = np.random.default_rng(seed)
+        cos_tilt = np.cos(np.radians(max_tilt_deg))
+        for _ in range(iterations):
+            tri = cand[rng.choice(len(cand), 3, replace=False)]
+            n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+            norm = np.linalg.norm(n)
+            if norm < 1e-9 or abs(n[2]) / norm < cos_tilt:
+                continue
+            n = n / norm * np.sign(n[2])
+            count = int(np.sum(np.abs(cand @ n - n @ tri[0]) < threshold))
+            if count > best_count:
+                best, best_count = (n, float(-n @ tri[0])), count
+    if best is None or best_count < 3:
+        log.debug("ground: no plane found, height rule at z < %.2f", -sensor_height + threshold)
+        return points[:, 2] < -sensor_height + threshold
+    n, d = best
+    inl = cand[np.abs(cand @ n + d) < threshold]
+    n, d = _fit_plane(inl)
+    if n[2] < np.cos(np.radians(max_tilt_deg)):
+        n, d = best
+    return points @ n + d < threshold
+
+
+def _knn_graph(points: np.ndarray, k: int, sigma: float, max_edge: float) -> sp.csr_matrix:
+    """Row-normalised symmetric k-NN affinity ``(N, N)`` (Gaussian weights, no self loops)."""
+    n = len(points)
+    k = min(k, n - 1)
+    if k < 1:
+        return sp.csr_matrix((n, n))
+    dist, idx = cKDTree(points).query(points, k=k + 1)  # (N, k+1), first is the point itself
+    dist, idx = dist[:, 1:], idx[:, 1:]
+    w = np.exp(-dist ** 2 / (2 * sigma ** 2)) * (dist <= max_edge)
+    rows = np.repeat(np.arange(n), k)
+    g = sp.csr_matrix((w.ravel(), (rows, idx.ravel())), shape=(n, n))
+    g = g.maximum(g.T).tocsr()
+    deg = np.asarray(g.sum(1)).ravel()
+    return (sp.diags(np.divide(1.0, deg, out=np.zeros(n), where=deg > 0)) @ g).tocsr()
+
+
+def pixel_labels(uv, masks: Sequence[np.ndarray]) -> np.ndarray:
+    """One-hot-ish pixel labels ``Y (N, C+1)`` of points at ``uv (N, 2)`` (last = background).
+
+    A point inside several masks splits its weight between them.
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    n, c = len(uv), len(masks)
+    y = np.zeros((n, c + 1))
+    if c:
+        h, w = masks[0].shape
+        col = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
+        row = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
+        for m, mask in enumerate(masks):
+            y[:, m] = mask[row, col]
+    y[:, c] = y[:, :c].sum(1) == 0
+    return y / y.sum(1, keepdims=True)
+
+
+def largest_cluster(points, gap: float) -> np.ndarray:
+    """Boolean ``(N,)``: the largest connected component of ``points`` at link distance ``gap``."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) <= 1:
+        return np.ones(len(points), dtype=bool)
+    pairs = cKDTree(points).query_pairs(gap, output_type="ndarray")  # (E, 2)
+    g = sp.csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                      shape=(len(points), len(points)))
+    _, comp = connected_components(g, directed=False)
+    return comp == np.bincount(comp).argmax()
+
+
+def diffuse_labels(points, uv, masks: Sequence[np.ndarray], k: int = 10, sigma: float = 0.3,
+                   max_edge: float = 1.0, lam: float = 0.2, iterations: int = 30,
+                   cluster_gap: float = 0.5, min_points: int = 1) -> np.ndarray:
+    """Instance label of every point: index into ``masks``, or :data:`BACKGROUND` (-1).
+
+    Args:
+        points: ``(N, 3)`` sensor-frame points that project into the image (filter first).
+        uv: ``(N, 2)`` their pixel coordinates.
+        masks: C boolean ``(h, w)`` instance masks of the image.
+        k, sigma, max_edge: the point graph (neighbours, Gaussian width m, cut-off m).
+        lam: weight of the pixel links against the point graph.
+        iterations: label-propagation sweeps.
+        cluster_gap: link distance (m) of the largest-cluster outlier filter (0 disables it).
+        min_points: instances left with fewer points are dropped to background.
+
+    Returns:
+        ``(N,)`` int64 labels.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n, c = len(points), len(masks)
+    labels = np.full(n, BACKGROUND, dtype=np.int64)
+    if n == 0 or c == 0:
+        return labels
+    y = pixel_labels(uv, masks)  # (N, C+1)
+    w = _knn_graph(points, k, sigma, max_edge)
+    lab = y.copy()
+    for _ in range(iterations):
+        lab = w @ lab + lam * y
+        lab /= lab.sum(1, keepdims=True)
+    best = lab.argmax(1)
+    labels = np.where(best == c, BACKGROUND, best)
+    for m in range(c):
+        idx = np.flatnonzero(labels == m)
+        if cluster_gap > 0 and len(idx) > 1:
+            labels[idx[~largest_cluster(points[idx], cluster_gap)]] = BACKGROUND
+        if np.sum(labels == m) < min_points:
+            labels[labels == m] = BACKGROUND
+    return labels

@@ -1,0 +1,231 @@
+"""Automatic amodal mask labels for one KITTI tracking sequence (the paper's Section IV).
+
+Modes:
+
+* ``gt-accumulation``: points cropped by the ground-truth boxes (``extract_tracks``),
+  accumulated in the canonical frame with the ground-truth poses, mirrored about the heading
+  axis and placed back in every frame (:mod:`seqshape.amodal.accumulate`).
+* ``sc-gt``: the same crops, completed by the sequential estimator (:mod:`.refine`).
+* ``sc-seg``: no 3D labels. Each frame's LiDAR points (ground removed) are labelled from the
+  2D instance masks of ``instances_2d/SSSS.json`` by graph diffusion (:mod:`.diffusion`),
+  associated across frames into tracks (:mod:`.association`, with oxts ego motion when present)
+  and completed by the estimator.
+
+Then per frame the completed clouds are projected, their alpha shapes filled as amodal masks,
+and ordered by depth for the visible masks (:mod:`.masks`); the result is KINS JSON.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from seqshape._progress import progress
+from seqshape.amodal.accumulate import gt_accumulation_clouds
+from seqshape.amodal.masks import ORDERS, InstanceMask, frame_masks
+from seqshape.amodal.refine import REFINE_MODES, TrackInput, complete_tracks
+from seqshape.errors import ConfigError, DataError
+
+log = logging.getLogger(__name__)
+
+MODES = ("gt-accumulation", "sc-gt", "sc-seg")
+#: KITTI object type -> KINS category id
+TYPE_TO_CATEGORY = {"Car": 4, "Van": 7, "Truck": 6, "Tram": 5, "Cyclist": 1, "Pedestrian": 2,
+                    "Person_sitting": 2, "Misc": 8}
+DEFAULT_REFINE = "none"  # see docs/amodal.md: the refinement is default only if it measures better
+
+
+@dataclass
+class LabelConfig:
+    """Options of :func:`label_sequence`.
+
+    mode: one of :data:`MODES`.
+    checkpoint: estimator weights (path), or "pretrained" for the shipped ones (sc-* modes).
+    refine: offline refinement, one of ``REFINE_MODES`` (sc-* modes).
+    order: occlusion rule of :func:`seqshape.amodal.masks.resolve_occlusion`.
+    alpha: alpha of the alpha shapes (None = automatic).
+    types: KITTI types labelled in the gt modes.
+    instances: COCO instance masks for sc-seg (default ``ROOT/instances_2d/SSSS.json``).
+    min_points: sc-seg instances with fewer segmented points are dropped.
+    gate: sc-seg association gate (m).
+    """
+
+    mode: str = "sc-gt"
+    checkpoint: str | None = "pretrained"
+    refine: str = DEFAULT_REFINE
+    order: str = "pixel"
+    alpha: float | None = None
+    types: tuple[str, ...] = ("Car", "Van")
+    instances: str | None = None
+    min_points: int = 5
+    gate: float = 3.0
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise ConfigError(f"mode must be one of {MODES}, got {self.mode!r}")
+        if self.refine not in REFINE_MODES:
+            raise ConfigError(f"refine must be one of {REFINE_MODES}, got {self.refine!r}")
+        if self.order not in ORDERS:
+            raise ConfigError(f"order must be one of {ORDERS}, got {self.order!r}")
+
+
+@dataclass
+class LabelResult:
+    """KINS ``images`` and ``annotations``, the masks per frame, and timings (s)."""
+
+    images: list[dict]
+    annotations: list[dict]
+    masks: dict[int, list[InstanceMask]] = field(repr=False)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def load_estimator(checkpoint: str | None):
+    """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped one)."""
+    from seqshape.model.estimator import Estimator
+
+    if checkpoint in (None, "pretrained"):
+        return Estimator.from_pretrained("sequential")
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise ConfigError(f"--checkpoint {checkpoint}: no such file")
+    return Estimator.from_checkpoint(path)
+
+
+def gt_track_inputs(seq, types=("Car", "Van")):
+    """``extract_tracks`` of the sequence and the matching :class:`TrackInput` list."""
+    from seqshape.data.kitti import extract_tracks
+
+    tracks = extract_tracks(seq, types=types)
+    inputs = [TrackInput(t.track_id, list(t.meta["frames"]), t.points, t.poses,
+                         TYPE_TO_CATEGORY.get(t.meta.get("type"), 8),
+                         int(t.meta["kitti_track_id"])) for t in tracks]
+    return tracks, inputs
+
+
+def _clouds_by_frame(inputs, clouds_per_track) -> dict[int, dict[str, tuple]]:
+    """``{frame: {track_id: (cloud, input)}}``."""
+    out: dict[int, dict[str, tuple]] = {}
+    for inp, clouds in zip(inputs, clouds_per_track, strict=True):
+        for f, c in zip(inp.frames, clouds, strict=True):
+            if c is not None and len(c):
+                out.setdefault(f, {})[inp.track_id] = (c, inp)
+    return out
+
+
+def label_sequence(root, sequence, cfg: LabelConfig, estimator=None) -> LabelResult:
+    """Amodal labels of every frame of ``ROOT/.../SSSS`` (module doc); nothing is written."""
+    from seqshape.data.kitti import KittiTrackingSequence
+
+    seq = KittiTrackingSequence(root, sequence)
+    if not seq.frames:
+        raise DataError(Path(root), f"sequence {seq.sequence}: no frames found")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    if cfg.mode == "sc-seg":
+        from seqshape.amodal.association import segment_sequence
+
+        inst_path = Path(cfg.instances) if cfg.instances else (
+            Path(root) / "instances_2d" / f"{seq.sequence}.json")
+        inputs = segment_sequence(seq, inst_path, min_points=cfg.min_points, gate=cfg.gate)
+    else:
+        tracks, inputs = gt_track_inputs(seq, cfg.types)
+    timings["segment"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if cfg.mode == "gt-accumulation":
+        clouds = [gt_accumulation_clouds(t) for t in tracks]
+    else:
+        est = estimator if estimator is not None else load_estimator(cfg.checkpoint)
+        est.reset()
+        clouds = [c.clouds for c in complete_tracks(est, inputs, cfg.refine)]
+    timings["complete"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    result = render_labels(seq, _clouds_by_frame(inputs, clouds), cfg)
+    timings["masks"] = time.perf_counter() - t0
+    timings["total"] = sum(timings.values())
+    timings["frames"] = len(seq.frames)
+    result.timings = timings
+    return result
+
+
+def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig) -> LabelResult:
+    """Masks and KINS records of every frame from the completed clouds."""
+    from seqshape.amodal.kins import image_entry, kins_annotation, occlusion_order
+
+    calib = seq.calib
+    size = (calib.height, calib.width)
+    images, anns, masks = [], [], {}
+    for image_id, frame in enumerate(progress(seq.frames, desc=f"masks {seq.sequence}",
+                                              unit="frame")):
+        images.append(image_entry(image_id, seq.sequence, frame, *size))
+        items = by_frame.get(frame, {})
+        insts = frame_masks({tid: c for tid, (c, _) in items.items()}, calib, size,
+                            alpha=cfg.alpha, order=cfg.order)
+        masks[frame] = insts
+        oco, ico = occlusion_order([m.order for m in insts], [m.amodal for m in insts])
+        for m, o, i in zip(insts, oco, ico, strict=True):
+            inp = items[m.track_id][1]
+            ann = kins_annotation(len(anns) + 1, image_id, inp.category_id, m.amodal,
+                                  m.visible, o, i, track_id=inp.label_id)
+            ann["depth"] = round(float(m.depth), 3)
+            anns.append(ann)
+    return LabelResult(images, anns, masks)
+
+
+def write_labels(path, result: LabelResult) -> None:
+    """Write the KINS JSON of a :class:`LabelResult`."""
+    from seqshape.amodal.kins import write_kins
+
+    write_kins(path, result.images, result.annotations)
+
+
+def _colour(k: int) -> tuple[int, int, int]:
+    """A distinct BGR colour per index (golden-ratio hues)."""
+    import colorsys
+
+    r, g, b = colorsys.hsv_to_rgb((k * 0.618034) % 1.0, 0.85, 1.0)
+    return int(255 * b), int(255 * g), int(255 * r)
+
+
+def draw_overlay(image: np.ndarray, insts: list[InstanceMask]) -> np.ndarray:
+    """The BGR ``image (h, w, 3)`` with visible masks tinted, amodal outlines and order ranks."""
+    import cv2
+
+    out = image.copy()
+    for k, m in enumerate(sorted(insts, key=lambda m: -m.order)):  # back to front
+        col = np.array(_colour(k), dtype=np.float64)
+        out[m.visible] = (0.55 * out[m.visible] + 0.45 * col).astype(np.uint8)
+        contours, _ = cv2.findContours(m.amodal.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                       cv2.CHAIN_APPROX_SIMPLE)
+        cv2.drawContours(out, contours, -1, _colour(k), 1)
+        ys, xs = np.nonzero(m.amodal)
+        cv2.putText(out, f"{m.track_id.split('_')[-1]}:{m.order + 1}",
+                    (int(xs.min()), max(int(ys.min()) - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    _colour(k), 1, cv2.LINE_AA)
+    return out
+
+
+def write_overlays(seq, result: LabelResult, out_dir, frames=None) -> list[Path]:
+    """Overlay PNGs ``OUT/SSSS_FFFFFF.png`` (image, or black when absent); returns the paths."""
+    import cv2
+
+    from seqshape._io import atomic_write_bytes
+
+    out_dir = Path(out_dir)
+    calib = seq.calib
+    paths = []
+    for frame in (seq.frames if frames is None else frames):
+        img_path = seq.image_path(frame)
+        img = cv2.imread(str(img_path), cv2.IMREAD_COLOR) if img_path.is_file() else None
+        if img is None:
+            img = np.zeros((calib.height, calib.width, 3), np.uint8)
+        ok, buf = cv2.imencode(".png", draw_overlay(img, result.masks.get(frame, [])))
+        if not ok:
+            raise DataError(out_dir, f"could not encode the overlay of frame {frame}")
+        path = out_dir / f"{seq.sequence}_{frame:06d}.png"
+        atomic_write_bytes(path, buf.tobytes())
+        paths.append(path)
+    return paths

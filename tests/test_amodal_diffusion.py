@@ -1,0 +1,75 @@
+"""Label diffusion and ground removal on hand-built point sets; frame association."""
+
+import numpy as np
+
+from seqshape.amodal.association import Detection, associate
+from seqshape.amodal.diffusion import BACKGROUND, diffuse_labels, ground_mask, largest_cluster
+
+
+def blob(centre, n, rng, spread=(1.0, 0.5, 0.4)):
+    """Points filling a box of half-extents 2 * spread around centre (a vehicle-sized blob)."""
+    return rng.uniform(np.subtract(centre, 2 * np.asarray(spread)),
+                       np.add(centre, 2 * np.asarray(spread)), size=(n, 3))
+
+
+def test_diffusion_two_separated_objects_with_sloppy_masks():
+    rng = np.random.default_rng(0)
+    a, b = blob([10, 2, 0], 400, rng), blob([15, -3, 0], 400, rng)
+    wall = rng.uniform([30, -10, -1], [31, 10, 2], size=(600, 3))  # background behind
+    pts = np.vstack([a, b, wall])
+    truth = np.r_[np.zeros(400), np.ones(400), np.full(600, BACKGROUND)]
+    # a fake "projection": u from y, v from z; masks are the objects' boxes dilated so that
+    # wall points fall inside them too, and 15% of each object's points fall outside
+    uv = np.c_[100 - 10 * pts[:, 1], 50 - 10 * pts[:, 2]]
+    masks = []
+    for obj in (a, b):
+        ouv = np.c_[100 - 10 * obj[:, 1], 50 - 10 * obj[:, 2]]
+        lo, hi = np.quantile(ouv, 0.08, axis=0), np.quantile(ouv, 0.92, axis=0)
+        m = np.zeros((100, 200), bool)
+        m[int(lo[1]) - 3:int(hi[1]) + 3, int(lo[0]) - 3:int(hi[0]) + 3] = True
+        masks.append(m)
+    col = np.clip(np.round(uv[:, 0]).astype(int), 0, 199)
+    row = np.clip(np.round(uv[:, 1]).astype(int), 0, 99)
+    inside = masks[0][row, col] | masks[1][row, col]
+    assert inside[800:].sum() > 50  # the masks do cover wall points: diffusion must fix them
+    labels = diffuse_labels(pts, uv, masks)
+    assert np.array_equal(labels, truth)
+
+
+def test_diffusion_edge_cases():
+    assert diffuse_labels(np.zeros((0, 3)), np.zeros((0, 2)), [np.ones((5, 5), bool)]).size == 0
+    assert (diffuse_labels(np.zeros((3, 3)), np.zeros((3, 2)), []) == BACKGROUND).all()
+
+
+def test_ground_mask_plane_and_objects():
+    rng = np.random.default_rng(1)
+    ground = np.c_[rng.uniform(0, 40, 3000), rng.uniform(-10, 10, 3000), np.zeros(3000)]
+    ground[:, 2] = -1.73 + 0.02 * ground[:, 0] / 40 + rng.normal(0, 0.02, 3000)  # slight slope
+    car = blob([12, 0, -1.0], 500, rng, (1.0, 0.5, 0.3))
+    car = car[car[:, 2] > -1.73 + 0.3]
+    g = ground_mask(np.vstack([ground, car]))
+    assert g[:3000].mean() > 0.99 and not g[3000:].any()
+
+
+def test_largest_cluster():
+    pts = np.array([[0, 0, 0], [0.3, 0, 0], [0.6, 0, 0], [5, 5, 5]], float)
+    assert largest_cluster(pts, 0.5).tolist() == [True, True, True, False]
+
+
+def test_association_crossing_tracks():
+    # two vehicles at constant velocity, detections shuffled per frame
+    masks = np.zeros((2, 10, 10), bool)
+    frames = []
+    for f in range(6):
+        c0, c1 = np.array([f * 1.5, 0.0, 0.0]), np.array([20 - f * 1.5, 3.5, 0.0])
+        dets = [Detection(f, c0, masks[0]), Detection(f, c1, masks[1])]
+        frames.append(dets[::-1] if f % 2 else dets)
+    ids = associate(frames, gate=3.0)
+    first = {0: ids[0][0], 1: ids[0][1]}
+    for f, row in enumerate(ids):
+        want = [first[1], first[0]] if f % 2 else [first[0], first[1]]
+        assert row == want
+    # a gap longer than max_age starts a new track
+    late = [[Detection(0, np.zeros(3), masks[0])], [], [], [], [], [],
+            [Detection(6, np.zeros(3), masks[0])]]
+    assert associate(late, max_age=2) == [[0], [], [], [], [], [], [1]]
