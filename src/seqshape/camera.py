@@ -225,8 +225,11 @@ def project_rect(points_rect, calib: KittiCalib, cam: int = 2) -> tuple[np.ndarr
     metres along the optical axis (plus P's small offset term). Points with depth <= 0 are
     behind the camera: their uv are still returned (meaningless), filter on ``depth > 0``.
     """
-    pts = np.asarray(points_rect, dtype=np.float64).reshape(-1, 3)
-    p = calib.P(cam)
+    return _project(points_rect, calib.P(cam))
+
+
+def _project(points, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     hom = pts @ p[:, :3].T + p[:, 3]  # (N, 3)
     depth = hom[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -239,7 +242,7 @@ def project_points(points_velo, calib: KittiCalib, cam: int = 2) -> tuple[np.nda
 
     Returns ``(uv (N, 2), depth (N,))`` float64 as :func:`project_rect`.
     """
-    return project_rect(velo_to_cam(points_velo, calib), calib, cam)
+    return _project(points_velo, calib.P(cam) @ calib.velo_to_rect)  # one (3, 4) matrix
 
 
 def unproject_points(uv, depth, calib: KittiCalib, cam: int = 2) -> np.ndarray:

@@ -436,12 +436,16 @@ def crop_box(points, pose, size, margin: float = 0.2, ground: float | None = 0.1
     frame) are dropped: the road under the wheels.
     """
     pts = np.asarray(points)[:, :3]
-    keep = points_in_box(pts, size, pose, margin)
+    pose = np.asarray(pose, dtype=np.float64)
+    reach = float(np.hypot(size[0] / 2 + margin, size[1] / 2 + margin))  # cheap x, y pre-filter
+    idx = np.flatnonzero((np.abs(pts[:, 0] - pose[0]) <= reach)
+                         & (np.abs(pts[:, 1] - pose[1]) <= reach))
+    cand = pts[idx]
+    keep = points_in_box(cand, size, pose, margin)
     if ground is not None and keep.any():
-        local_z = sensor_to_canonical(pts[keep].astype(np.float64), pose)[:, 2]
-        idx = np.flatnonzero(keep)
-        keep[idx[local_z < -float(size[2]) / 2 + ground]] = False
-    return np.ascontiguousarray(pts[keep], dtype=np.float32)
+        local_z = sensor_to_canonical(cand.astype(np.float64), pose)[:, 2]
+        keep &= local_z >= -float(size[2]) / 2 + ground
+    return np.ascontiguousarray(cand[keep], dtype=np.float32)
 
 
 def extract_tracks(seq: KittiTrackingSequence, margin: float = 0.2, remove_ground: bool = True,
