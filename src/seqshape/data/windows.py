@@ -1,0 +1,172 @@
+"""Training windows: W consecutive frames of one track, padded to fixed-size tensors.
+
+A window is a pure function of ``(seed, key, epoch, index)`` (``key`` separates streams, e.g.
+the training stage), so a resumed run sees exactly the windows an uninterrupted run would and
+data-parallel processes can each take their share of the same global order.
+
+Item ``i`` of :class:`WindowDataset` is a window of track ``i // windows_per_track``::
+
+    points    float32 (W, N, 3)   sensor-frame points per frame, resampled/padded to N
+    lengths   int64   (W,)        real points per frame (0 = empty frame)
+    poses     float32 (W, 4)      ground-truth (x, y, z, yaw) per frame (0 where unknown)
+    valid     bool    (W,)        frame exists (short tracks are padded) and its pose is known
+    complete  float32 (M, 3)      ground-truth complete shape, canonical frame, M points
+    start     int64   ()          first frame index of the window in its track
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from seqshape.data.dataset import TrackDataset
+from seqshape.data.track import Track
+from seqshape.errors import DataError
+
+log = logging.getLogger(__name__)
+
+
+def resample_frame(points: np.ndarray, num_points: int,
+                   rng: np.random.Generator) -> tuple[np.ndarray, int]:
+    """Fit one frame (n, 3) into exactly ``num_points`` rows.
+
+    More than ``num_points``: a random subset without replacement. Fewer: the points repeated
+    cyclically to fill the rows (the returned length n tells the network which rows are real,
+    so the mean and the max-pool see each point once). Returns (points (N, 3) float32, length).
+    """
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    n = len(points)
+    if n > num_points:
+        idx = np.sort(rng.choice(n, num_points, replace=False))
+        return points[idx], num_points
+    if n == 0:
+        return np.zeros((num_points, 3), np.float32), 0
+    return np.resize(points, (num_points, 3)), n
+
+
+class TrackCache:
+    """Tracks of a dataset loaded lazily, the ``size`` most recently used kept in memory."""
+
+    def __init__(self, tracks: TrackDataset, size: int = 128):
+        self.tracks = tracks
+        self.size = max(1, int(size))
+        self._cache: OrderedDict[int, Track] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self.tracks)
+
+    def get(self, i: int) -> Track:
+        if i in self._cache:
+            self._cache.move_to_end(i)
+            return self._cache[i]
+        track = self.tracks[i]
+        if track.complete is None or len(track.complete) == 0:
+            raise DataError(self.tracks.path / self.tracks.entries[i]["file"],
+                            "track has no ground-truth complete shape; cannot train on it")
+        self._cache[i] = track
+        if len(self._cache) > self.size:
+            self._cache.popitem(last=False)
+        return track
+
+
+class WindowDataset(torch.utils.data.Dataset):
+    """Windows of ``window`` consecutive frames over the tracks of one split.
+
+    Args:
+        tracks: a :class:`TrackDataset` (typically ``ds.split("train")``).
+        window: W, frames per window (tracks shorter than W are padded with invalid frames).
+        num_points: N, points per frame (random subset without replacement if more; padded
+            with a lengths mask if fewer).
+        num_complete: M, ground-truth complete points per window (subset without replacement,
+            or with replacement when the track holds fewer).
+        windows_per_track: windows drawn per track and epoch.
+        p_first: probability that a window starts at frame 0 (the paper's recursion from the
+            first detection); otherwise the start is uniform over the track.
+        seed, key: select the random stream; ``set_epoch`` selects the epoch.
+        cache_size: tracks kept in memory (a track file holds all its frames).
+    """
+
+    def __init__(self, tracks: TrackDataset, window: int = 8, num_points: int = 256,
+                 num_complete: int = 1024, windows_per_track: int = 1, p_first: float = 0.25,
+                 seed: int = 0, key: int = 0, cache_size: int = 128):
+        if len(tracks) == 0:
+            raise DataError(tracks.path, "no tracks to draw training windows from")
+        self.cache = TrackCache(tracks, cache_size)
+        self.window = int(window)
+        self.num_points = int(num_points)
+        self.num_complete = int(num_complete)
+        self.windows_per_track = max(1, int(windows_per_track))
+        self.p_first = float(p_first)
+        self.seed = int(seed)
+        self.key = int(key)
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return len(self.cache) * self.windows_per_track
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        return self.window_at(i, self.epoch)
+
+    def window_at(self, i: int, epoch: int) -> dict[str, np.ndarray]:
+        """Window ``i`` of ``epoch`` (deterministic)."""
+        if not 0 <= i < len(self):
+            raise IndexError(f"window {i} out of range for {len(self)} windows")
+        rng = np.random.default_rng([self.seed, self.key, int(epoch), int(i)])
+        track = self.cache.get(i // self.windows_per_track)
+        t, w = len(track), self.window
+        start = 0
+        if t > w and rng.random() >= self.p_first:
+            start = int(rng.integers(0, t - w + 1))
+        n = min(w, t - start)
+        points = np.zeros((w, self.num_points, 3), np.float32)
+        lengths = np.zeros(w, np.int64)
+        for k in range(n):
+            points[k], lengths[k] = resample_frame(track.points[start + k], self.num_points, rng)
+        poses = np.zeros((w, 4), np.float32)
+        valid = np.zeros(w, bool)
+        gt = track.poses[start:start + n]
+        known = np.all(np.isfinite(gt), axis=1)
+        poses[:n][known] = gt[known]
+        valid[:n] = known
+        m = len(track.complete)
+        idx = rng.choice(m, self.num_complete, replace=m < self.num_complete)
+        return {"points": points, "lengths": lengths, "poses": poses, "valid": valid,
+                "complete": track.complete[idx].astype(np.float32),
+                "start": np.int64(start)}
+
+
+def collate(items: Sequence[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:
+    """Stack windows into a batch: every array gains a leading batch axis B."""
+    return {k: torch.from_numpy(np.stack([it[k] for it in items])) for k in items[0]}
+
+
+def stream_indices(n: int, seed: int, key: int, start: int, count: int) -> list[tuple[int, int]]:
+    """Positions ``start .. start+count-1`` of an endless shuffled stream over ``n`` items.
+
+    Each epoch is a fresh permutation (from ``seed``, ``key``, epoch). Returns
+    ``(epoch, index)`` pairs. Data-parallel rank r of R with per-rank batch B takes, at global
+    step s, positions ``s*B*R + r*B .. + B``: disjoint shards of one global order.
+    """
+    out = []
+    perms: dict[int, np.ndarray] = {}
+    for pos in range(start, start + count):
+        epoch, j = divmod(pos, n)
+        if epoch not in perms:
+            perms[epoch] = np.random.default_rng([seed, key, epoch, 7919]).permutation(n)
+        out.append((epoch, int(perms[epoch][j])))
+    return out
+
+
+def batch_for_step(ds: WindowDataset, step: int, batch_size: int, rank: int = 0,
+                   world: int = 1) -> dict[str, torch.Tensor]:
+    """The batch of data-parallel ``rank`` (of ``world``) at global training ``step``."""
+    first = step * batch_size * world + rank * batch_size
+    pairs = stream_indices(len(ds), ds.seed, ds.key, first, batch_size)
+    return collate([ds.window_at(i, e) for e, i in pairs])

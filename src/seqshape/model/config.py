@@ -1,0 +1,81 @@
+"""Network hyper-parameters: :class:`ModelConfig` and the named presets.
+
+``small`` is sized to train usefully on 2 CPU cores in about half an hour; ``paper`` follows
+the PCN encoder widths (128-256 / 512-1024) and K = 2048 output points, for a GPU.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+from seqshape.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Widths and point counts of :class:`seqshape.model.network.ShapePoseNet`."""
+
+    num_points: int = 256
+    """N: every input frame is resampled to at most N points (random subset without
+    replacement when it has more; padded with a lengths mask when it has fewer)."""
+    encoder1: tuple[int, ...] = (64, 128)
+    """Widths of the first shared point MLP (input 3); its max-pool is the first global
+    feature, concatenated back to every point (PCN)."""
+    encoder2: tuple[int, ...] = (256, 256)
+    """Widths of the second shared point MLP (input 2 * encoder1[-1]); its max-pool is the
+    frame feature f_t (size encoder2[-1])."""
+    hidden: int = 256
+    """H: size of the GRU hidden state h_t (also the decoder input size of the baseline)."""
+    shape_decoder: tuple[int, ...] = (512, 512)
+    """Hidden widths of the shape MLP; its output layer has 3 * num_complete units."""
+    pose_decoder: tuple[int, ...] = (256, 256)
+    """Hidden widths of the pose MLP; its output is (x, y, z, cos yaw, sin yaw)."""
+    num_complete: int = 1024
+    """K: number of points of the estimated complete shape."""
+
+    def __post_init__(self):
+        for name in ("encoder1", "encoder2", "shape_decoder", "pose_decoder"):
+            value = tuple(int(v) for v in getattr(self, name))
+            if not value or min(value) < 1:
+                raise ConfigError(f"ModelConfig.{name} must be a non-empty tuple of positive "
+                                  f"widths, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, value)
+        for name in ("num_points", "hidden", "num_complete"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"ModelConfig.{name} must be >= 1, got {getattr(self, name)}")
+
+    @property
+    def feature_size(self) -> int:
+        """Size of the frame feature f_t."""
+        return self.encoder2[-1]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict (tuples become lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
+        """Inverse of :meth:`to_dict`; unknown keys are a :class:`ConfigError`."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ConfigError(f"unknown ModelConfig fields {unknown}")
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+
+
+MODEL_PRESETS: dict[str, ModelConfig] = {
+    "small": ModelConfig(),
+    "paper": ModelConfig(num_points=1024, encoder1=(128, 256), encoder2=(512, 1024),
+                         hidden=1024, shape_decoder=(1024, 1024), pose_decoder=(512, 256),
+                         num_complete=2048),
+}
+
+
+def get_model_config(name: str) -> ModelConfig:
+    """The preset ``name`` (see :data:`MODEL_PRESETS`)."""
+    try:
+        return MODEL_PRESETS[name]
+    except KeyError:
+        raise ConfigError(f"unknown model preset {name!r}; choose from "
+                          f"{sorted(MODEL_PRESETS)}") from None

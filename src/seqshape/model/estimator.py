@@ -1,0 +1,217 @@
+"""Streaming inference: :class:`Estimator` keeps one hidden state per live track.
+
+>>> est = Estimator.from_checkpoint("run/model.pt")            # doctest: +SKIP
+>>> out = est.step(["car7", "car9"], [points_a, points_b])    # doctest: +SKIP
+>>> out[0].complete.shape, out[0].pose                         # doctest: +SKIP
+((1024, 3), array([12.1, -3.4, -0.9, 0.31]))
+
+Weight files (checkpoints and exported ``model.pt``) are plain dicts read with
+``torch.load(weights_only=True)``::
+
+    {"format": "seqshape-checkpoint", "version": 1, "kind": "sequential" | "baseline",
+     "model_config": {...}, "train_config": {...}, "state_dict": {...}, "metrics": {...}}
+
+(training checkpoints add a "training" entry with the optimiser and RNG states).
+"""
+
+from __future__ import annotations
+
+import logging
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from seqshape.data.windows import resample_frame
+from seqshape.errors import ConfigError, DataError
+from seqshape.model.config import ModelConfig
+from seqshape.model.network import ShapePoseNet
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "seqshape-checkpoint"
+CHECKPOINT_VERSION = 1
+KINDS = ("sequential", "baseline")
+PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
+
+
+def read_model_file(path: str | Path) -> dict[str, Any]:
+    """Load and validate a seqshape weights file; anything else raises :class:`DataError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "weights file not found")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt/foreign files
+        raise DataError(path, f"not a readable seqshape weights file "
+                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise DataError(path, f"not a seqshape checkpoint (expected a dict with format "
+                              f"{CHECKPOINT_FORMAT!r})")
+    if int(payload.get("version", 0)) > CHECKPOINT_VERSION:
+        raise DataError(path, f"checkpoint version {payload.get('version')} is newer than this "
+                              f"seqshape understands ({CHECKPOINT_VERSION}); upgrade seqshape")
+    if payload.get("kind") not in KINDS:
+        raise DataError(path, f"unknown model kind {payload.get('kind')!r}; expected {KINDS}")
+    for key in ("model_config", "state_dict"):
+        if not isinstance(payload.get(key), dict):
+            raise DataError(path, f"checkpoint lacks a valid {key!r} entry")
+    return payload
+
+
+def build_model(payload: dict[str, Any], path: str | Path = "<memory>") -> ShapePoseNet:
+    """The :class:`ShapePoseNet` described and weighted by a validated payload."""
+    try:
+        cfg = ModelConfig.from_dict(payload["model_config"])
+        model = ShapePoseNet(cfg, recurrent=payload["kind"] == "sequential")
+        model.load_state_dict(payload["state_dict"])
+    except (ConfigError, RuntimeError, TypeError, ValueError) as exc:
+        raise DataError(path, f"weights do not fit the model they describe ({exc})") from None
+    return model
+
+
+@dataclass
+class Estimate:
+    """One track's estimate at its latest frame.
+
+    ``complete`` (K, 3) float32 and ``pose`` (4,) float64 = (x, y, z, yaw) are in that frame's
+    sensor frame; ``num_points`` is the number of input points of the frame (0 = the estimate
+    was carried forward from the state).
+    """
+
+    track_id: str
+    complete: np.ndarray
+    pose: np.ndarray
+    num_points: int
+
+
+@dataclass
+class _TrackState:
+    hidden: torch.Tensor  # (H,)
+    mean: torch.Tensor  # (3,) last known frame mean
+    seen: bool
+    rng: np.random.Generator
+
+
+class Estimator:
+    """The network plus one recurrent state per live track; numpy in, numpy out.
+
+    Args:
+        model: a trained :class:`ShapePoseNet` (put in eval mode).
+        threads: torch intra-op threads (``torch.set_num_threads``; None leaves it alone).
+        seed: seeds the per-track random subsets of frames with more than N points.
+    """
+
+    def __init__(self, model: ShapePoseNet, threads: int | None = None, seed: int = 0,
+                 metrics: dict | None = None):
+        self.model = model.eval()
+        self.seed = int(seed)
+        self.metrics = dict(metrics or {})
+        if threads is not None:
+            torch.set_num_threads(int(threads))
+        self._states: dict[str, _TrackState] = {}
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, device: str = "cpu",
+                        threads: int | None = None, seed: int = 0) -> Estimator:
+        """Load a training checkpoint or an exported ``model.pt`` (CPU inference)."""
+        if device != "cpu":
+            raise ConfigError(f"Estimator runs on the CPU; got device {device!r}")
+        payload = read_model_file(path)
+        return cls(build_model(payload, path), threads, seed, payload.get("metrics"))
+
+    @classmethod
+    def from_pretrained(cls, kind: str = "sequential", threads: int | None = None,
+                        seed: int = 0) -> Estimator:
+        """The shipped weights ``seqshape/pretrained/<kind>.pt``."""
+        if kind not in KINDS:
+            raise ConfigError(f"unknown pretrained model {kind!r}; choose from {KINDS}")
+        path = PRETRAINED_DIR / f"{kind}.pt"
+        if not path.is_file():
+            raise DataError(path, f"shipped {kind} weights are missing from this installation; "
+                                  f"train them with `seqshape train --model {kind}` and use "
+                                  f"Estimator.from_checkpoint(RUN/model.pt)")
+        return cls.from_checkpoint(path, threads=threads, seed=seed)
+
+    @property
+    def recurrent(self) -> bool:
+        return self.model.recurrent
+
+    @property
+    def kind(self) -> str:
+        return self.model.kind
+
+    @property
+    def config(self) -> ModelConfig:
+        return self.model.cfg
+
+    @property
+    def track_ids(self) -> list[str]:
+        """Tracks with a live state."""
+        return list(self._states)
+
+    def reset(self, track_id: str | None = None) -> None:
+        """Drop one track's state (unknown ids are ignored), or every track's with None."""
+        if track_id is None:
+            self._states.clear()
+        else:
+            self._states.pop(track_id, None)
+
+    def _state(self, track_id: str) -> _TrackState:
+        st = self._states.get(track_id)
+        if st is None:
+            seed = [self.seed, zlib.crc32(track_id.encode("utf-8"))]
+            st = _TrackState(torch.zeros(self.model.cfg.hidden), torch.zeros(3), False,
+                             np.random.default_rng(seed))
+            self._states[track_id] = st
+        return st
+
+    def _prepare(self, states: list[_TrackState], point_lists: Sequence[np.ndarray]):
+        frames, lengths = [], []
+        n_max = self.model.cfg.num_points
+        for i, (st, pts) in enumerate(zip(states, point_lists, strict=True)):
+            pts = np.asarray(pts, dtype=np.float32)
+            if pts.ndim != 2 or pts.shape[1] != 3:
+                raise ConfigError(f"point_lists[{i}] must have shape (N, 3), got {pts.shape}")
+            pts = pts[np.all(np.isfinite(pts), axis=1)]
+            frames.append(pts if len(pts) <= n_max else resample_frame(pts, n_max, st.rng)[0])
+            lengths.append(len(frames[-1]))
+        n = max(1, max(lengths))  # pad only to the largest frame of this batch
+        batch = np.zeros((len(frames), 1, n, 3), np.float32)
+        for i, f in enumerate(frames):
+            if len(f):
+                batch[i, 0] = np.resize(f, (n, 3))
+        return torch.from_numpy(batch), torch.tensor(lengths, dtype=torch.int64)[:, None]
+
+    def step(self, track_ids: Sequence[str], point_lists: Sequence[np.ndarray]) -> list[Estimate]:
+        """Advance each listed track by one frame, all in one forward pass.
+
+        ``point_lists[i]`` is track ``track_ids[i]``'s (N_i, 3) points in its current sensor
+        frame (N_i may be 0; rows with NaN/inf are dropped). New ids start a fresh state.
+        Returns one :class:`Estimate` per track, in order.
+        """
+        track_ids = [str(t) for t in track_ids]
+        if len(track_ids) != len(point_lists):
+            raise ConfigError(f"{len(track_ids)} track ids but {len(point_lists)} point lists")
+        if len(set(track_ids)) != len(track_ids):
+            raise ConfigError("a track id appears twice in one step")
+        if not track_ids:
+            return []
+        states = [self._state(t) for t in track_ids]
+        points, lengths = self._prepare(states, point_lists)
+        with torch.inference_mode():
+            out = self.model(points, lengths, torch.stack([s.hidden for s in states]),
+                             torch.stack([s.mean for s in states]),
+                             torch.tensor([s.seen for s in states]))
+        complete = out["complete"][:, 0].numpy()
+        pose = out["pose"][:, 0].double().numpy()
+        result = []
+        for i, (tid, st) in enumerate(zip(track_ids, states, strict=True)):
+            st.hidden, st.mean = out["hidden"][i].clone(), out["mean"][i].clone()
+            st.seen = bool(out["seen"][i, 0])
+            result.append(Estimate(tid, complete[i].copy(), pose[i].copy(), int(lengths[i, 0])))
+        return result

@@ -1,0 +1,164 @@
+"""The paper's network: demean, PCN-style PointNet encoder, GRU fusion, shape and pose MLPs.
+
+Shapes used throughout: B tracks (batch), W frames per track (window), N points per frame
+(padded; ``lengths`` (B, W) says how many are real), H hidden size, K output points.
+All coordinates are in metres in each frame's sensor frame; nothing is rescaled.
+
+Per frame t (paper Eqs. 3-7)::
+
+    mean_t = masked mean of Z_t                     (last known mean if Z_t is empty)
+    f_t    = encoder(Z_t - mean_t)                  PointNet -> max-pool -> concat -> PointNet -> max
+    h_t    = GRU(h_{t-1}, f_t)                      (baseline: h_t = Linear(f_t); empty frame: h_t = h_{t-1})
+    X_t    = g_shape(h_t) + mean_t                  (K, 3)
+    T_t    = g_pose(h_t) = (x, y, z, cos, sin) -> (x + mean, y + mean, z + mean, atan2(sin, cos))
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from seqshape.model.config import ModelConfig
+
+
+def mlp(sizes: Sequence[int], point_wise: bool = False) -> nn.Sequential:
+    """Linear layers with ReLU between them (none after the last one).
+
+    ``point_wise`` only documents intent: ``nn.Linear`` acts on the last axis, so the same MLP
+    is shared by all points of a ``(..., N, C)`` tensor.
+    """
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+def masked_max(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Max over the point axis of ``x`` (F, N, C) counting only ``mask`` (F, N) points.
+
+    A frame without valid points gets a zero feature.
+    """
+    neg = torch.finfo(x.dtype).min
+    out = x.masked_fill(~mask.unsqueeze(-1), neg).amax(dim=1)
+    return torch.where(mask.any(dim=1, keepdim=True), out, torch.zeros_like(out))
+
+
+class PointEncoder(nn.Module):
+    """PCN encoder: shared MLP -> max-pool g -> [per-point, g] -> shared MLP -> max-pool.
+
+    ``forward(points (F, N, 3), mask (F, N) bool) -> (F, encoder2[-1])``.
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.mlp1 = mlp([3, *cfg.encoder1], point_wise=True)
+        self.mlp2 = mlp([2 * cfg.encoder1[-1], *cfg.encoder2], point_wise=True)
+
+    def forward(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        x = self.mlp1(points)
+        g = masked_max(x, mask)
+        x = torch.cat([x, g.unsqueeze(1).expand(-1, x.shape[1], -1)], dim=-1)
+        return masked_max(self.mlp2(x), mask)
+
+
+class ShapePoseNet(nn.Module):
+    """Sequential (``recurrent=True``) or per-frame baseline (``recurrent=False``) estimator.
+
+    The baseline (Goforth et al. 2020) has the same encoder and decoders; its decoder input is
+    ``Linear(f_t)`` instead of the GRU state. For both, a frame with no points leaves the state
+    unchanged (the baseline then repeats its last estimate, placed at the last known mean).
+    """
+
+    def __init__(self, cfg: ModelConfig, recurrent: bool = True):
+        super().__init__()
+        self.cfg = cfg
+        self.recurrent = bool(recurrent)
+        self.encoder = PointEncoder(cfg)
+        if self.recurrent:
+            self.fusion: nn.Module = nn.GRUCell(cfg.feature_size, cfg.hidden)
+        else:
+            self.fusion = nn.Linear(cfg.feature_size, cfg.hidden)
+        self.shape_decoder = mlp([cfg.hidden, *cfg.shape_decoder, 3 * cfg.num_complete])
+        self.pose_decoder = mlp([cfg.hidden, *cfg.pose_decoder, 5])
+
+    @property
+    def kind(self) -> str:
+        return "sequential" if self.recurrent else "baseline"
+
+    def backbone_parameters(self) -> list[nn.Parameter]:
+        """Encoder + fusion (GRU or linear): what stage 1 trains besides the shape decoder."""
+        return list(self.encoder.parameters()) + list(self.fusion.parameters())
+
+    def encode(self, points: torch.Tensor, lengths: torch.Tensor,
+               hidden: torch.Tensor | None = None, last_mean: torch.Tensor | None = None,
+               seen: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Run the encoder and the fusion over a window.
+
+        Args:
+            points: (B, W, N, 3) sensor-frame points, padded per frame.
+            lengths: (B, W) number of real points per frame (0 = empty frame).
+            hidden: (B, H) state before the first frame (zeros if None).
+            last_mean: (B, 3) last known frame mean of each track (zeros if None).
+            seen: (B,) bool, whether each track had points before (False if None).
+
+        Returns ``h`` (B, W, H) state after each frame, ``means`` (B, W, 3) the offset added
+        back to each frame's outputs, ``seen`` (B, W) whether any points were seen up to that
+        frame, and ``hidden`` (B, H), ``mean`` (B, 3), ``seen_last`` (B,) to continue from.
+        """
+        b, w, n, _ = points.shape
+        lengths = lengths.to(points.device).long()
+        mask = torch.arange(n, device=points.device) < lengths.unsqueeze(-1)  # (B, W, N)
+        m = mask.unsqueeze(-1).to(points.dtype)
+        frame_mean = (points * m).sum(2) / lengths.clamp(min=1).unsqueeze(-1).to(points.dtype)
+        feats = self.encoder((points - frame_mean.unsqueeze(2)).reshape(b * w, n, 3),
+                             mask.reshape(b * w, n)).reshape(b, w, -1)
+        h = points.new_zeros(b, self.cfg.hidden) if hidden is None else hidden
+        mean = points.new_zeros(b, 3) if last_mean is None else last_mean
+        seen_t = (torch.zeros(b, dtype=torch.bool, device=points.device) if seen is None
+                  else seen.to(points.device).bool())
+        hs, means, seens = [], [], []
+        for t in range(w):
+            has = (lengths[:, t] > 0).unsqueeze(-1)
+            h_new = self.fusion(feats[:, t], h) if self.recurrent else self.fusion(feats[:, t])
+            h = torch.where(has, h_new, h)
+            mean = torch.where(has, frame_mean[:, t], mean)
+            seen_t = seen_t | has.squeeze(-1)
+            hs.append(h)
+            means.append(mean)
+            seens.append(seen_t)
+        return {"h": torch.stack(hs, 1), "means": torch.stack(means, 1),
+                "seen": torch.stack(seens, 1), "hidden": h, "mean": mean, "seen_last": seen_t}
+
+    def decode_shape(self, h: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """Complete shape (..., K, 3) in the sensor frame from states (..., H), means (..., 3)."""
+        out = self.shape_decoder(h).reshape(*h.shape[:-1], self.cfg.num_complete, 3)
+        return out + mean.unsqueeze(-2)
+
+    def decode_pose(self, h: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
+        """Pose (..., 4) = (x, y, z, yaw) in the sensor frame; yaw = atan2(sin, cos)."""
+        p = self.pose_decoder(h)
+        yaw = torch.atan2(p[..., 4], p[..., 3])
+        return torch.cat([p[..., :3] + mean, yaw.unsqueeze(-1)], dim=-1)
+
+    def forward(self, points: torch.Tensor, lengths: torch.Tensor,
+                hidden: torch.Tensor | None = None, last_mean: torch.Tensor | None = None,
+                seen: torch.Tensor | None = None, shape: bool = True,
+                pose: bool = True) -> dict[str, torch.Tensor]:
+        """Estimate shape and pose for every frame of a window (see :meth:`encode`).
+
+        Returns ``complete`` (B, W, K, 3) and ``pose`` (B, W, 4) in each frame's sensor frame
+        (left out when ``shape`` / ``pose`` is False), ``hidden`` (B, H), ``mean`` (B, 3),
+        ``seen`` (B, W): frames before a track's first points have meaningless estimates.
+        """
+        enc = self.encode(points, lengths, hidden, last_mean, seen)
+        out = {"hidden": enc["hidden"], "mean": enc["mean"], "seen": enc["seen"]}
+        if shape:
+            out["complete"] = self.decode_shape(enc["h"], enc["means"])
+        if pose:
+            out["pose"] = self.decode_pose(enc["h"], enc["means"])
+        return out
+

@@ -1,0 +1,410 @@
+"""The three-stage trainer (paper, "Training"), resumable, deterministic, data-parallel.
+
+Outputs in the run folder ``RUN``::
+
+    config.json      resolved configuration (train + model + kind + data path)
+    last.pt          latest checkpoint (every ``ckpt_every`` steps and at each stage end)
+    stage{1,2,3}.pt  checkpoint at the end of each stage
+    model.pt         exported weights (for :class:`seqshape.Estimator`)
+    log.csv          training rows (running means) and validation rows
+    tb/              TensorBoard events (optional)
+
+Losses are averaged over the window frames that have a known pose and follow the track's
+first points (earlier frames have no estimate). The GT complete shape is placed in each
+frame with its GT pose; nothing is rescaled (metres, square metres).
+
+Data parallelism (``torchrun --nproc_per_node R``, gloo on CPU): every process builds the
+same model from the seed, takes its disjoint shard of each global batch
+(:func:`seqshape.data.windows.batch_for_step`), and gradients are averaged with one
+all-reduce per step before the optimiser step. Only rank 0 writes files.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import random
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from seqshape._io import atomic_write_json
+from seqshape._progress import progress
+from seqshape.data.dataset import TrackDataset
+from seqshape.data.windows import WindowDataset, batch_for_step, collate
+from seqshape.errors import ConfigError, DataError
+from seqshape.model.estimator import KINDS
+from seqshape.model.network import ShapePoseNet
+from seqshape.train import checkpoint as ckpt
+from seqshape.train.config import STAGE_NAMES, TrainConfig
+from seqshape.train.losses import JointLoss, chamfer_distance, pose_loss
+from seqshape.train.runlog import RunLog
+
+log = logging.getLogger(__name__)
+
+
+def place_complete(complete: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+    """Canonical shapes (F, M, 3) to the sensor frame with poses (F, 4): ``R c + t``."""
+    c, s = torch.cos(poses[:, 3])[:, None], torch.sin(poses[:, 3])[:, None]
+    x, y = complete[..., 0], complete[..., 1]
+    return torch.stack([c * x - s * y, s * x + c * y, complete[..., 2]], -1) + poses[:, None, :3]
+
+
+class Trainer:
+    """Train one model (``kind`` "sequential" or "baseline") on ``data`` into ``out``."""
+
+    def __init__(self, data: str | Path, out: str | Path, kind: str, cfg: TrainConfig,
+                 resume: bool = False):
+        if kind not in KINDS:
+            raise ConfigError(f"unknown model kind {kind!r}; choose from {KINDS}")
+        self.out, self.data, self.kind = Path(out), Path(data), kind
+        self.rank, self.world = _init_distributed()
+        self.is_main = self.rank == 0
+        payload = self._resume_payload(resume)
+        if payload is not None:
+            cfg = self._checked_resume_config(payload, cfg)
+        self.cfg = cfg
+        torch.set_num_threads(cfg.threads)
+        torch.use_deterministic_algorithms(True, warn_only=True)
+        dataset = TrackDataset(self.data)
+        self.train_tracks = dataset.split("train")
+        try:
+            self.val_tracks: TrackDataset | None = dataset.split("val")
+        except DataError:
+            log.warning("%s has no val split: validation is skipped", self.data)
+            self.val_tracks = None
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed % 2**32)
+        random.seed(cfg.seed)
+        self.model = ShapePoseNet(cfg.model_config(), recurrent=kind == "sequential")
+        self.joint = JointLoss()
+        self.state: dict[str, Any] = {"stage": 0, "step": 0, "elapsed": 0.0, "global_step": 0,
+                                      "sigma_init": False, "optimizer": None}
+        self.metrics: dict[str, Any] = {}
+        if payload is not None:
+            self._load(payload)
+        self.runlog = RunLog(self.out, self.state["global_step"], cfg.tensorboard) \
+            if self.is_main else None
+        self._val_batches = self._make_val_batches()
+
+    # ------------------------------------------------------------------ setup / resume
+    def _resume_payload(self, resume: bool) -> dict | None:
+        last = self.out / "last.pt"
+        if not last.exists():
+            if resume:
+                log.info("no checkpoint in %s: starting a new run", self.out)
+            return None
+        if not resume:
+            raise ConfigError(f"{self.out} already holds a training run ({last}); pass "
+                              f"--resume to continue it or choose another --out")
+        return ckpt.load_checkpoint(last)
+
+    def _checked_resume_config(self, payload: dict, cfg: TrainConfig) -> TrainConfig:
+        if payload["kind"] != self.kind:
+            raise ConfigError(f"{self.out} trains a {payload['kind']} model, not {self.kind}")
+        saved = TrainConfig.from_dict(payload["train_config"])
+        if saved != cfg:
+            log.warning("resuming with the configuration saved in %s/last.pt; the arguments "
+                        "given now differ and are ignored", self.out)
+        return saved
+
+    def _load(self, payload: dict) -> None:
+        self.model.load_state_dict(payload["state_dict"])
+        tr = payload["training"]
+        self.joint.load_state_dict(tr["joint"])
+        self.state.update({k: tr[k] for k in ("stage", "step", "elapsed", "global_step",
+                                               "sigma_init", "optimizer")})
+        self.metrics = dict(payload.get("metrics", {}))
+        ckpt.set_rng_state(tr["rng"])
+        log.info("resuming %s at stage %d step %d", self.out, self.state["stage"] + 1,
+                 self.state["step"])
+
+    def _make_val_batches(self) -> list[dict[str, torch.Tensor]]:
+        if self.val_tracks is None or not self.is_main or self.cfg.val_windows <= 0:
+            return []
+        c, m = self.cfg, self.model.cfg
+        wds = WindowDataset(self.val_tracks, c.window, m.num_points, c.num_complete_gt,
+                            windows_per_track=max(1, -(-c.val_windows // len(self.val_tracks))),
+                            p_first=0.5, seed=c.seed + 1_000_003, key=0, cache_size=4)
+        idx = np.linspace(0, len(wds) - 1, min(c.val_windows, len(wds))).round().astype(int)
+        items = [wds.window_at(int(i), 0) for i in idx]
+        return [collate(items[i:i + c.batch_size]) for i in range(0, len(items), c.batch_size)]
+
+    # ------------------------------------------------------------------ losses
+    def _losses(self, batch: dict[str, torch.Tensor], stage: int | None) -> dict[str, torch.Tensor]:
+        """Per-batch mean CD (m) and pose loss (m^2) over the frames that count.
+
+        ``stage`` 0 / 1 computes only the CD / pose term (stage 1 with the backbone frozen
+        and run without gradient); None or 2 computes both.
+        """
+        pts, lengths = batch["points"], batch["lengths"]
+        if stage == 1:
+            with torch.no_grad():
+                enc = self.model.encode(pts, lengths)
+            out = {"pose": self.model.decode_pose(enc["h"], enc["means"]), "seen": enc["seen"]}
+        else:
+            out = self.model(pts, lengths, shape=True, pose=stage != 0)
+        sel = batch["valid"] & out["seen"]
+        frame_track = sel.nonzero()[:, 0]
+        gt_pose = batch["poses"][sel]
+        gt = place_complete(batch["complete"][frame_track], gt_pose)
+        n = max(1, int(sel.sum()))
+        res = {"frames": torch.tensor(float(sel.sum()))}
+        if "complete" in out:
+            res["cd"] = chamfer_distance(out["complete"][sel], gt).sum() / n
+        if "pose" in out:
+            res["pose"] = pose_loss(out["pose"][sel], gt_pose, gt).sum() / n
+        return res
+
+    def _objective(self, res: dict[str, torch.Tensor], stage: int) -> torch.Tensor:
+        if stage == 0:
+            return res["cd"]
+        if stage == 1:
+            return res["pose"]
+        return self.joint(res["cd"], res["pose"])
+
+    @torch.no_grad()
+    def validate(self, stage: int) -> dict[str, float]:
+        """Frame-weighted CD, pose loss and the stage objective over the fixed val windows."""
+        if not self._val_batches:
+            return {}
+        tot = {"cd": 0.0, "pose": 0.0, "frames": 0.0}
+        for batch in self._val_batches:
+            res = self._losses(batch, None)
+            f = float(res["frames"])
+            tot["cd"] += float(res["cd"]) * f
+            tot["pose"] += float(res["pose"]) * f
+            tot["frames"] += f
+        f = max(tot["frames"], 1.0)
+        cd, pl = tot["cd"] / f, tot["pose"] / f
+        obj = {0: cd, 1: pl}.get(stage)
+        if obj is None:
+            obj = float(self.joint(torch.tensor(cd), torch.tensor(pl)))
+        return {"val_loss": obj, "val_cd_m": cd, "val_pose_m2": pl}
+
+    # ------------------------------------------------------------------ stages
+    def _stage_groups(self, stage: int) -> list[dict[str, Any]]:
+        m, lr = self.model, self.cfg.stages[stage].lr
+        if stage == 0:
+            params = m.backbone_parameters() + list(m.shape_decoder.parameters())
+        elif stage == 1:
+            params = list(m.pose_decoder.parameters())
+        else:
+            params = list(m.parameters())
+        for p in m.parameters():
+            p.requires_grad_(False)
+        for p in params:
+            p.requires_grad_(True)
+        self.joint.log_sigma.requires_grad_(stage == 2)
+        groups = [{"params": params, "lr": lr, "base_lr": lr}]
+        if stage == 2:
+            groups.append({"params": [self.joint.log_sigma], "lr": self.cfg.sigma_lr,
+                           "base_lr": self.cfg.sigma_lr})
+        return groups
+
+    def _progress_fraction(self, stage: int) -> float:
+        sc = self.cfg.stages[stage]
+        frac = self.state["step"] / max(1, sc.steps)
+        if sc.time_budget_min:
+            frac = max(frac, self.state["elapsed"] / (60.0 * sc.time_budget_min))
+        return min(1.0, frac)
+
+    def _set_lr(self, opt: torch.optim.Optimizer, stage: int) -> float:
+        r = self.cfg.lr_min_ratio
+        factor = r + (1 - r) * 0.5 * (1 + math.cos(math.pi * self._progress_fraction(stage)))
+        for g in opt.param_groups:
+            g["lr"] = g["base_lr"] * factor
+        return opt.param_groups[0]["lr"]
+
+    def _stage_done(self, stage: int) -> bool:
+        sc = self.cfg.stages[stage]
+        if self.state["step"] >= sc.steps:
+            return True
+        return bool(sc.time_budget_min) and self.state["elapsed"] >= 60.0 * sc.time_budget_min
+
+    def _init_sigmas(self, batch: dict[str, torch.Tensor]) -> None:
+        with torch.no_grad():
+            res = self._losses(batch, None)
+            vals = torch.stack([res["cd"], res["pose"]])
+            vals = _all_reduce_mean(vals, self.world)
+        self.joint.init_from(float(vals[0]), float(vals[1]))
+        self.state["sigma_init"] = True
+        log.info("stage 3: sigma_cd=%.4g sigma_p=%.4g from the first batch", *self.joint.sigmas)
+
+    def _train_step(self, opt, wds: WindowDataset, stage: int) -> dict[str, float]:
+        c = self.cfg
+        batch = batch_for_step(wds, self.state["global_step"], c.batch_size, self.rank,
+                               self.world)
+        if stage == 2 and not self.state["sigma_init"]:
+            self._init_sigmas(batch)
+        lr = self._set_lr(opt, stage)
+        res = self._losses(batch, stage)
+        loss = self._objective(res, stage)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        params = [p for g in opt.param_groups for p in g["params"] if p.grad is not None]
+        _all_reduce_grads(params, self.world)
+        if c.grad_clip:
+            torch.nn.utils.clip_grad_norm_(params, c.grad_clip)
+        opt.step()
+        out = {"loss": float(loss.detach()), "lr": lr, "frames": float(res["frames"])}
+        out.update({k: float(res[k]) for k in ("cd", "pose") if k in res})
+        return out
+
+    def _run_stage(self, stage: int) -> None:
+        c, sc = self.cfg, self.cfg.stages[stage]
+        opt = torch.optim.Adam(self._stage_groups(stage))
+        if self.state["optimizer"] is not None:
+            opt.load_state_dict(self.state["optimizer"])
+            self.state["optimizer"] = None
+        wds = WindowDataset(self.train_tracks, c.window, self.model.cfg.num_points,
+                            c.num_complete_gt, c.windows_per_track, c.p_first, c.seed,
+                            key=stage + 1, cache_size=c.cache_size)
+        bar = progress(total=sc.steps, initial=self.state["step"], unit="step",
+                       desc=f"stage {stage + 1}/3 ({STAGE_NAMES[stage]}, {self.kind})",
+                       disable=None if self.is_main else True)
+        self.model.train()
+        t_last = time.monotonic()
+        while not self._stage_done(stage):
+            row = self._train_step(opt, wds, stage)
+            self.state["step"] += 1
+            self.state["global_step"] += 1
+            now = time.monotonic()
+            self.state["elapsed"] = float(_all_reduce_max(
+                self.state["elapsed"] + now - t_last, self.world))
+            t_last = now
+            bar.update(1)
+            step = self.state["step"]
+            if self.is_main:
+                row["frames"] *= self.world
+                self.runlog.train_row(stage, step, self.state["global_step"], row,
+                                      self.joint.sigmas, c.log_every)
+                if c.val_every and step % c.val_every == 0 and not self._stage_done(stage):
+                    self._validate_and_log(stage)
+                if c.ckpt_every and step % c.ckpt_every == 0 and not self._stage_done(stage):
+                    self._save(opt)
+        bar.close()
+        if self.is_main:
+            self._validate_and_log(stage)
+        self.state.update(stage=stage + 1, step=0, elapsed=0.0, optimizer=None)
+        if self.is_main:
+            self._save(None, stage_end=stage + 1)
+
+    def _validate_and_log(self, stage: int) -> None:
+        self.model.eval()
+        val = self.validate(stage)
+        self.model.train()
+        if val:
+            self.metrics.update(val, val_stage=stage + 1)
+            self.runlog.val_row(stage, self.state["step"], self.state["global_step"], val,
+                                self.joint.sigmas)
+
+    # ------------------------------------------------------------------ files
+    def _payload(self, opt) -> dict[str, Any]:
+        payload = ckpt.model_payload(self.model, self.cfg.to_dict(), self.metrics)
+        payload["training"] = {
+            "stage": self.state["stage"], "step": self.state["step"],
+            "elapsed": self.state["elapsed"], "global_step": self.state["global_step"],
+            "sigma_init": self.state["sigma_init"],
+            "optimizer": None if opt is None else opt.state_dict(),
+            "scheduler": {"kind": "cosine-per-stage", "lr_min_ratio": self.cfg.lr_min_ratio},
+            "joint": {k: v.clone() for k, v in self.joint.state_dict().items()},
+            "rng": ckpt.rng_state(), "world_size": self.world}
+        return payload
+
+    def _save(self, opt, stage_end: int | None = None) -> None:
+        payload = self._payload(opt)
+        ckpt.save_payload(self.out / "last.pt", payload)
+        if stage_end is not None:
+            ckpt.save_payload(self.out / f"stage{stage_end}.pt", payload)
+        self.runlog.flush()
+
+    def write_config(self) -> None:
+        if self.is_main:
+            atomic_write_json(self.out / "config.json", {
+                "kind": self.kind, "data": str(self.data), "world_size": self.world,
+                "train_config": self.cfg.to_dict(),
+                "model_config": self.model.cfg.to_dict()})
+
+    def run(self) -> Path:
+        """Run the remaining stages, export ``RUN/model.pt`` and return its path."""
+        self.write_config()
+        t0 = time.monotonic()
+        for stage in range(self.state["stage"], 3):
+            self._run_stage(stage)
+        path = self.out / "model.pt"
+        if self.is_main:
+            sig = self.joint.sigmas
+            self.metrics.update(global_steps=self.state["global_step"], sigma_cd=sig[0],
+                                sigma_p=sig[1], last_session_seconds=time.monotonic() - t0)
+            ckpt.save_payload(path, ckpt.model_payload(self.model, self.cfg.to_dict(),
+                                                       self.metrics))
+            self.runlog.close()
+            log.info("wrote %s (%s)", path, {k: round(v, 5) for k, v in self.metrics.items()
+                                             if isinstance(v, float)})
+        _barrier(self.world)
+        return path
+
+
+def train(data: str | Path, out: str | Path, kind: str = "sequential",
+          cfg: TrainConfig | None = None, resume: bool = False) -> Path:
+    """Train (or resume) a run; returns the exported ``model.pt`` path."""
+    return Trainer(data, out, kind, cfg or TrainConfig(), resume).run()
+
+
+# ---------------------------------------------------------------------- distributed helpers
+def _init_distributed() -> tuple[int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group("gloo")
+    return dist.get_rank(), dist.get_world_size()
+
+
+def _all_reduce_grads(params: list[torch.Tensor], world: int) -> None:
+    if world <= 1 or not params:
+        return
+    import torch.distributed as dist
+
+    flat = torch.cat([p.grad.reshape(-1) for p in params])
+    dist.all_reduce(flat)
+    flat /= world
+    offset = 0
+    for p in params:
+        n = p.grad.numel()
+        p.grad.copy_(flat[offset:offset + n].view_as(p.grad))
+        offset += n
+
+
+def _all_reduce_mean(t: torch.Tensor, world: int) -> torch.Tensor:
+    if world <= 1:
+        return t
+    import torch.distributed as dist
+
+    t = t.clone()
+    dist.all_reduce(t)
+    return t / world
+
+
+def _all_reduce_max(x: float, world: int) -> float:
+    if world <= 1:
+        return x
+    import torch.distributed as dist
+
+    t = torch.tensor([x], dtype=torch.float64)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return float(t)
+
+
+def _barrier(world: int) -> None:
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.barrier()
