@@ -1,0 +1,123 @@
+"""Track dataset folders: ``manifest.json`` plus ``tracks/<track_id>.npz``.
+
+Manifest format ``seqshape-tracks`` version 1 (docs/data-format.md)::
+
+    {"format": "seqshape-tracks", "version": 1,
+     "created_by": "seqshape 0.1.0", "config": {...generator config...},
+     "tracks": [{"track_id": "...", "split": "train", "file": "tracks/....npz",
+                 "n_frames": 70, "n_points": 12345}, ...]}
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from seqshape._io import atomic_write_json
+from seqshape.data.track import Track, load_track, save_track
+from seqshape.errors import DataError
+
+MANIFEST = "manifest.json"
+DATASET_FORMAT = "seqshape-tracks"
+DATASET_FORMAT_VERSION = 1
+
+
+class TrackDataset:
+    """A folder of tracks: ``len(ds)``, ``ds[i] -> Track``, ``ds.split("train")``.
+
+    Tracks are read from disk on access (nothing is cached), so a dataset of any size opens
+    instantly and can be shared by DataLoader workers.
+    """
+
+    def __init__(self, path: str | Path, _entries: list[dict] | None = None):
+        self.path = Path(path)
+        if _entries is not None:
+            self.manifest = None
+            self.entries = _entries
+            return
+        mpath = self.path / MANIFEST
+        if not self.path.is_dir():
+            raise DataError(self.path, "no such dataset folder")
+        if not mpath.is_file():
+            raise DataError(mpath, "missing manifest: not a seqshape track dataset, or its "
+                                   "generation has not finished (rerun the same command)")
+        try:
+            self.manifest = json.loads(mpath.read_text())
+        except json.JSONDecodeError as exc:
+            raise DataError(mpath, f"invalid JSON ({exc})") from None
+        if self.manifest.get("format") != DATASET_FORMAT:
+            raise DataError(mpath, f"not a {DATASET_FORMAT} manifest")
+        if int(self.manifest.get("version", 0)) > DATASET_FORMAT_VERSION:
+            raise DataError(mpath, f"dataset format version {self.manifest['version']} is newer "
+                                   f"than this seqshape understands; upgrade")
+        self.entries = list(self.manifest.get("tracks", []))
+        for i, e in enumerate(self.entries):
+            if "track_id" not in e or "file" not in e:
+                raise DataError(mpath, f"track entry {i} lacks 'track_id' or 'file'")
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __getitem__(self, i: int) -> Track:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"track index {i} out of range for {len(self)} tracks")
+        return load_track(self.path / self.entries[i]["file"])
+
+    def __iter__(self) -> Iterator[Track]:
+        for i in range(len(self)):
+            yield self[i]
+
+    @property
+    def track_ids(self) -> list[str]:
+        return [e["track_id"] for e in self.entries]
+
+    def index_of(self, track_id: str) -> int:
+        for i, e in enumerate(self.entries):
+            if e["track_id"] == track_id:
+                return i
+        raise KeyError(f"{self.path}: no track with id {track_id!r}")
+
+    def get(self, track_id: str) -> Track:
+        return self[self.index_of(track_id)]
+
+    def split(self, name: str) -> TrackDataset:
+        """The tracks of one split ("train" or "val") as a dataset view."""
+        entries = [e for e in self.entries if e.get("split") == name]
+        if not entries:
+            splits = sorted({str(e.get("split")) for e in self.entries})
+            raise DataError(self.path, f"no tracks in split {name!r} (splits here: {splits})")
+        return TrackDataset(self.path, _entries=entries)
+
+    def __repr__(self) -> str:
+        return f"TrackDataset({str(self.path)!r}, {len(self)} tracks)"
+
+
+def manifest_entry(track: Track, file: str) -> dict[str, Any]:
+    return {"track_id": track.track_id, "split": track.meta.get("split"), "file": file,
+            "n_frames": len(track), "n_points": int(track.num_points.sum())}
+
+
+def write_manifest(path: str | Path, entries: list[dict], config: dict | None = None,
+                   **extra: Any) -> None:
+    """Write ``manifest.json`` atomically (entries sorted by track id for stable output)."""
+    from seqshape import __version__
+
+    manifest = {"format": DATASET_FORMAT, "version": DATASET_FORMAT_VERSION,
+                "created_by": f"seqshape {__version__}", "config": config or {}, **extra,
+                "tracks": sorted(entries, key=lambda e: e["track_id"])}
+    atomic_write_json(Path(path) / MANIFEST, manifest)
+
+
+def write_dataset(path: str | Path, tracks: Iterable[Track], config: dict | None = None,
+                  **extra: Any) -> TrackDataset:
+    """Write tracks and a manifest to a new dataset folder; returns it opened."""
+    path = Path(path)
+    entries = []
+    for tr in tracks:
+        file = f"tracks/{tr.track_id}.npz"
+        save_track(path / file, tr)
+        entries.append(manifest_entry(tr, file))
+    write_manifest(path, entries, config, **extra)
+    return TrackDataset(path)
