@@ -1,0 +1,207 @@
+"""The per-track work of :mod:`seqshape.sim.generate`, run in-process or in spawned workers.
+
+A worker receives a :class:`WorkerPayload` once (the config, every vehicle's mesh arrays, the
+CSV trajectories) and builds meshes, Embree intersectors and complete shapes lazily, caching
+them for the vehicles it is given. Everything about track ``i`` is drawn from
+``np.random.SeedSequence([seed, i])``, so where it runs does not change it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from seqshape.data.dataset import manifest_entry
+from seqshape.data.track import Track, save_track
+from seqshape.errors import DataError
+
+MIN_CLEARANCE = 1.5      # m between a sampled vehicle's footprint and the sensor
+CSV_MIN_CLEARANCE = 0.5  # m for trajectories read from CSV logs (closer: an error)
+_COMPLETE_TAG = 0xC0_3E7E  # seed-sequence tag of the complete shapes
+
+
+class TrackPlan:
+    """Track numbering: track ``i`` is trajectory ``j`` of vehicle ``v``, ``i = v * tpv + j``."""
+
+    def __init__(self, config, vehicle_ids: list[str], splits: list[str]):
+        self.tpv = config.tracks_per_vehicle
+        self.vehicle_ids = list(vehicle_ids)
+        self.splits = list(splits)
+        self.n_tracks = len(vehicle_ids) * self.tpv
+
+    def track_indices(self, v: int) -> range:
+        return range(v * self.tpv, (v + 1) * self.tpv)
+
+    def track_id(self, i: int) -> str:
+        v, j = divmod(i, self.tpv)
+        return f"{self.vehicle_ids[v]}-{j:02d}"
+
+
+@dataclass
+class WorkerPayload:
+    """What a worker needs, picklable: config, per-vehicle (id, kind, source, V, F), splits."""
+
+    config: object
+    vehicles: list[tuple[str, str, str, np.ndarray, np.ndarray]]
+    splits: list[str]
+    logs: list
+
+    @classmethod
+    def build(cls, config, vehicles, splits, logs) -> WorkerPayload:
+        return cls(config, [(v.vehicle_id, v.kind, v.source,
+                             np.asarray(v.mesh.vertices, dtype=np.float64),
+                             np.asarray(v.mesh.faces, dtype=np.int64)) for v in vehicles],
+                   list(splits), list(logs))
+
+
+_STATE: dict = {}
+
+
+def init_worker(payload: WorkerPayload) -> None:
+    """Install the payload in this process and reset the per-vehicle caches."""
+    from seqshape.sim.sensors import get_sensor
+
+    sensor = get_sensor(payload.config.sensor)
+    _STATE.clear()
+    _STATE.update(payload=payload, meshes={}, complete={},
+                  sensor=sensor if payload.config.noise else sensor.without_noise(),
+                  plan=TrackPlan(payload.config, [v[0] for v in payload.vehicles],
+                                 payload.splits))
+
+
+def _mesh(v: int):
+    meshes = _STATE["meshes"]
+    if v not in meshes:
+        import trimesh
+
+        _, _, _, verts, faces = _STATE["payload"].vehicles[v]
+        meshes[v] = trimesh.Trimesh(verts, faces, process=False)
+    return meshes[v]
+
+
+def _complete(v: int) -> np.ndarray:
+    cache = _STATE["complete"]
+    if v not in cache:
+        from seqshape.vehicles import sample_outer_surface
+
+        cfg = _STATE["payload"].config
+        seed = int(np.random.SeedSequence([cfg.seed, _COMPLETE_TAG, v]).generate_state(1)[0])
+        cache[v] = sample_outer_surface(_mesh(v), cfg.num_points, seed)
+    return cache[v]
+
+
+def _ground_z(mesh, sensor) -> float:
+    """Pose z that puts the mesh's lowest point on the ground (``z = -sensor.height``)."""
+    return float(-sensor.height - mesh.bounds[0, 2])
+
+
+def _trajectory(i: int, rng, size):
+    from seqshape.sim import trajectories as tj
+
+    cfg, sensor = _STATE["payload"].config, _STATE["sensor"]
+    logs = _STATE["payload"].logs
+    if logs:
+        traj = logs[i % len(logs)]
+        gap = tj.footprint_distance(traj.x, traj.y, traj.yaw, size[0], size[1])
+        if gap.min() < CSV_MIN_CLEARANCE:
+            t = int(np.argmin(gap))
+            raise DataError(traj.source, f"vehicle of length {size[0]:.2f} m would overlap the "
+                                         f"sensor at t={traj.t[t]:g} s (x={traj.x[t]:.2f}, "
+                                         f"y={traj.y[t]:.2f}); trajectories are in the sensor "
+                                         f"frame and must keep clear of the origin")
+        return traj
+    return tj.sample_trajectory(rng, length=size[0], width=size[1], rate_hz=sensor.rate_hz,
+                                min_distance=cfg.min_distance, max_distance=cfg.max_distance,
+                                min_clearance=MIN_CLEARANCE, min_frames=cfg.min_frames,
+                                max_frames=cfg.max_frames, mean_frames=cfg.mean_frames)
+
+
+def _occluder_poses(rng, poses, size, occ_size, parked: bool):
+    """Candidate occluder poses ``(T, 4)``: a neighbour lane / parking slot or a free track."""
+    from seqshape.sim.trajectories import sample_trajectory
+
+    cfg, sensor = _STATE["payload"].config, _STATE["sensor"]
+    if rng.random() < 0.5:
+        if parked:
+            lon, lat = rng.choice([-1, 1]) * rng.uniform(5.5, 8.0), rng.normal(0.0, 0.2)
+        else:
+            lon, lat = rng.uniform(-12, 12), rng.choice([-1, 1]) * rng.uniform(3.2, 4.0)
+        c, s = np.cos(poses[:, 3]), np.sin(poses[:, 3])
+        out = poses.copy()
+        out[:, 0] += c * lon - s * lat
+        out[:, 1] += s * lon + c * lat
+        return out
+    tr = sample_trajectory(rng, n_frames=len(poses), length=occ_size[0], width=occ_size[1],
+                           rate_hz=sensor.rate_hz, min_distance=cfg.min_distance,
+                           max_distance=cfg.max_distance, min_clearance=MIN_CLEARANCE)
+    return tr.poses(0.0)
+
+
+def _occluders(rng, v: int, poses, size, parked: bool):
+    """Up to ``max_occluders`` other vehicles of the same split that never collide."""
+    from seqshape.sim.trajectories import footprint_distance, footprints_overlap
+
+    cfg, sensor, splits = _STATE["payload"].config, _STATE["sensor"], _STATE["payload"].splits
+    pool = [u for u in range(len(splits)) if u != v and splits[u] == splits[v]]
+    if not pool or cfg.max_occluders == 0:
+        return [], []
+    placed, ids = [], []
+    for _ in range(int(rng.integers(0, cfg.max_occluders + 1))):
+        u = int(pool[rng.integers(len(pool))])
+        mesh = _mesh(u)
+        occ_size = mesh.extents
+        for _attempt in range(8):
+            cand = _occluder_poses(rng, poses, size, occ_size, parked)
+            cand[:, 2] = _ground_z(mesh, sensor)
+            clear = footprint_distance(cand[:, 0], cand[:, 1], cand[:, 3], occ_size[0],
+                                       occ_size[1]).min() >= MIN_CLEARANCE
+            others = [(poses, size)] + [(p, m.extents) for m, p in placed]
+            if clear and not any(footprints_overlap(p, s, cand, occ_size).any()
+                                 for p, s in others):
+                placed.append((mesh, cand))
+                ids.append(_STATE["payload"].vehicles[u][0])
+                break
+    return placed, ids
+
+
+def make_track(i: int) -> Track:
+    """Track ``i`` of the plan (see :class:`TrackPlan`), fully determined by (seed, i)."""
+    from seqshape.sim.raycast import scan_track
+
+    payload, sensor, plan = _STATE["payload"], _STATE["sensor"], _STATE["plan"]
+    cfg = payload.config
+    v = i // plan.tpv
+    vid, kind, source = payload.vehicles[v][:3]
+    rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, i]))
+    mesh = _mesh(v)
+    size = np.asarray(mesh.extents, dtype=np.float64)
+    traj = _trajectory(i, rng, size)
+    poses = traj.poses(_ground_z(mesh, sensor))
+    occ, occ_ids = _occluders(rng, v, poses, size, traj.manoeuvre == "parked")
+    points = scan_track(mesh, poses, sensor, rng, occ, cfg.ground)
+    meta = {"mesh_id": vid, "kind": kind, "source": source, "sensor": sensor.name,
+            "split": payload.splits[v], "generator": "seqshape.sim.generate",
+            "generator_version": _generator_version(), "preset": cfg.name, "seed": cfg.seed,
+            "track_index": i, "manoeuvre": traj.manoeuvre, "trajectory_source": traj.source,
+            "ground": cfg.ground, "noise": cfg.noise, "occluders": occ_ids}
+    return Track(plan.track_id(i), points, poses, _complete(v), size, traj.t, meta)
+
+
+def _generator_version() -> int:
+    from seqshape.sim.generate import GENERATOR_VERSION
+
+    return GENERATOR_VERSION
+
+
+def work_unit(unit) -> list[dict]:
+    """Generate and save the tracks ``indices`` of vehicle ``v`` into ``out``; their entries."""
+    _v, indices, out = unit
+    entries = []
+    for i in indices:
+        track = make_track(i)
+        file = f"tracks/{track.track_id}.npz"
+        save_track(Path(out) / file, track)
+        entries.append(manifest_entry(track, file))
+    return entries

@@ -1,0 +1,347 @@
+"""Synthetic LiDAR track datasets: vehicles x trajectories x raycasting -> Track files.
+
+Layout of the output folder (docs/data-format.md)::
+
+    DIR/generate.json        the generation config (a rerun must match it)
+    DIR/tracks/<id>.npz      one Track per file (atomic writes)
+    DIR/manifest.json        written once every track of the preset exists
+
+Determinism: track ``i`` (``i = vehicle_index * tracks_per_vehicle + j``) draws everything from
+``np.random.SeedSequence([seed, i])``, the split permutation and the complete shapes from their
+own seed sequences, so the arrays are identical whatever the number of workers or shards.
+Shard ``K/N`` (1-based) takes the vehicles with ``index % N == K - 1``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from seqshape.data.dataset import MANIFEST, manifest_entry, write_manifest
+from seqshape.data.track import Track, load_track, save_track
+from seqshape.errors import ConfigError, DataError
+from seqshape.sim import _worker as _tracks
+
+log = logging.getLogger(__name__)
+
+GENERATOR_VERSION = 1
+CONFIG_FILE = "generate.json"
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """Everything that determines a generated dataset (the output is a function of this)."""
+
+    name: str
+    """Preset name, recorded in the manifest."""
+    n_vehicles: int = 183
+    """Number of procedural vehicles (ignored with ``meshes``: every mesh there is used)."""
+    n_val_vehicles: int = 15
+    """Vehicles held out for the val split (scaled proportionally for a mesh folder)."""
+    tracks_per_vehicle: int = 11
+    """Trajectories driven by every vehicle."""
+    sensor: str = "vlp16"
+    """LiDAR preset: "vlp16", "hdl32" or "hdl64"."""
+    noise: bool = False
+    """Apply the sensor's range noise and dropout (off: exact first hits)."""
+    ground: bool = False
+    """The ground plane blocks rays (it never returns points itself)."""
+    max_occluders: int = 0
+    """Up to this many other vehicles per track that block rays (they return no points)."""
+    min_frames: int = 10
+    """Shortest track (frames)."""
+    max_frames: int = 200
+    """Longest track (frames)."""
+    mean_frames: float = 70.0
+    """Mean track length (frames); lengths are a truncated log-normal."""
+    min_distance: float = 3.0
+    """No vehicle centre comes closer to the sensor (m)."""
+    max_distance: float = 60.0
+    """Tracks stay within this distance of the sensor (m)."""
+    num_points: int = 2048
+    """Points of the complete ground-truth shape per vehicle."""
+    seed: int = 0
+    """Master seed of vehicles, splits, trajectories and noise."""
+    meshes: str | None = None
+    """Folder of user meshes (OBJ/PLY/STL/OFF/GLB/GLTF) instead of procedural vehicles."""
+    mesh_up: str = "z"
+    """Up axis of the user meshes (see seqshape.vehicles.load_vehicle)."""
+    mesh_forward: str = "x"
+    """Forward axis of the user meshes."""
+    mesh_scale: float = 1.0
+    """Scale of the user meshes to metres."""
+    trajectories: str | None = None
+    """A CSV file or folder of CSV files (t,x,y,yaw) driving the vehicles instead of sampling."""
+
+    def validate(self) -> None:
+        if self.n_vehicles < 1 and self.meshes is None:
+            raise ConfigError("n_vehicles must be >= 1")
+        if not 0 <= self.n_val_vehicles < max(self.n_vehicles, 2):
+            raise ConfigError("n_val_vehicles must be >= 0 and < n_vehicles")
+        if self.tracks_per_vehicle < 1 or self.num_points < 1 or self.max_occluders < 0:
+            raise ConfigError("tracks_per_vehicle and num_points must be >= 1, "
+                              "max_occluders >= 0")
+        if not 1 <= self.min_frames <= self.mean_frames <= self.max_frames:
+            raise ConfigError("need 1 <= min_frames <= mean_frames <= max_frames")
+        if not 0 < self.min_distance < self.max_distance:
+            raise ConfigError("need 0 < min_distance < max_distance")
+        if self.seed < 0:
+            raise ConfigError(f"seed must be >= 0, got {self.seed}")
+        from seqshape.sim.sensors import get_sensor
+
+        get_sensor(self.sensor)
+
+
+PRESETS: dict[str, GenerateConfig] = {
+    # a handful of short tracks, generated in seconds
+    "tiny": GenerateConfig("tiny", n_vehicles=6, n_val_vehicles=2, tracks_per_vehicle=2,
+                           min_frames=10, max_frames=30, mean_frames=18.0, max_distance=40.0),
+    # the paper's synthetic dataset: 183 vehicles, 168/15 split, 11 tracks each, VLP-16 at 2 m
+    "paper": GenerateConfig("paper"),
+    # paper + ground plane and up to 4 other vehicles as occluders + range noise and dropout
+    "realistic": GenerateConfig("realistic", noise=True, ground=True, max_occluders=4),
+}
+
+
+@dataclass
+class GenerateSummary:
+    """What a run did: tracks of the whole preset, generated now, found done, manifest state."""
+
+    n_tracks: int
+    n_generated: int
+    n_skipped: int
+    manifest_written: bool
+    seconds: float
+    missing: list[str] = field(default_factory=list)
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"K/N"`` (1 <= K <= N) -> ``(K, N)``; :class:`ConfigError` otherwise."""
+    try:
+        k, n = (int(p) for p in str(text).split("/"))
+    except ValueError:
+        raise ConfigError(f"--shard must look like K/N (e.g. 1/4), got {text!r}") from None
+    if not 1 <= k <= n:
+        raise ConfigError(f"--shard K/N needs 1 <= K <= N, got {text!r}")
+    return k, n
+
+
+def config_dict(config: GenerateConfig) -> dict:
+    """The config as saved in ``generate.json`` and the manifest (with the generator version)."""
+    return {**asdict(config), "generator_version": GENERATOR_VERSION}
+
+
+def _check_config(out: Path, cfg: dict) -> None:
+    """Write ``generate.json`` or check it matches: one folder, one config."""
+    from seqshape._io import atomic_write_json
+
+    path = out / CONFIG_FILE
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise DataError(path, f"invalid JSON ({exc})") from None
+        diff = sorted(k for k in set(old) | set(cfg) if old.get(k) != cfg.get(k))
+        if diff:
+            detail = ", ".join(f"{k}: {old.get(k)!r} there vs {cfg.get(k)!r} now" for k in diff)
+            raise ConfigError(f"{out} holds a dataset generated with another config ({detail}); "
+                              f"use another --out folder or rerun with the same options")
+        return
+    if (out / MANIFEST).is_file() or any((out / "tracks").glob("*.npz")):
+        raise ConfigError(f"{out} already holds tracks but no {CONFIG_FILE}; use another "
+                          f"--out folder")
+    atomic_write_json(path, cfg)
+
+
+def vehicles_digest(vehicles) -> str:
+    """SHA-1 of the vehicles' ids and mesh arrays: a resume with other meshes is refused."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for v in vehicles:
+        h.update(v.vehicle_id.encode())
+        h.update(np.ascontiguousarray(v.mesh.vertices, dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(v.mesh.faces, dtype=np.int64).tobytes())
+    return h.hexdigest()
+
+
+def _trajectories_digest(logs) -> str | None:
+    if not logs:
+        return None
+    import hashlib
+
+    h = hashlib.sha1()
+    for tr in logs:
+        h.update(np.stack([tr.t, tr.x, tr.y, tr.yaw]).tobytes())
+    return h.hexdigest()
+
+
+def _load_vehicles(config: GenerateConfig):
+    from seqshape import vehicles
+
+    if config.meshes is not None:
+        return vehicles.load_vehicle_folder(config.meshes, up=config.mesh_up,
+                                            forward=config.mesh_forward, scale=config.mesh_scale)
+    return vehicles.vehicle_library(config.n_vehicles, seed=config.seed)
+
+
+def _load_trajectories(spec: str | None):
+    if spec is None:
+        return []
+    from seqshape.sim.trajectories import read_trajectory_csv
+
+    path = Path(spec)
+    if path.is_dir():
+        files = sorted(path.glob("*.csv"))
+        if not files:
+            raise DataError(path, "no *.csv trajectory files in this folder")
+        return [read_trajectory_csv(f) for f in files]
+    return [read_trajectory_csv(path)]
+
+
+def _splits(n: int, config: GenerateConfig) -> list[str]:
+    """Per-vehicle split: a seeded permutation puts ``n_val`` vehicles into "val"."""
+    n_val = config.n_val_vehicles
+    if config.meshes is not None:  # scale the val share to the folder's size
+        n_val = int(round(n * config.n_val_vehicles / max(config.n_vehicles, 1)))
+        n_val = min(max(n_val, 1 if n > 1 else 0), n - 1)
+    perm = np.random.default_rng(np.random.SeedSequence([config.seed, 0x5B117])).permutation(n)
+    val = set(perm[:n_val].tolist())
+    return ["val" if i in val else "train" for i in range(n)]
+
+
+def _work_units(n_vehicles: int, config: GenerateConfig, shard) -> list[int]:
+    k, n = shard
+    return [v for v in range(n_vehicles) if v % n == k - 1]
+
+
+def generate_dataset(config: GenerateConfig, out: str | Path, workers: int = 1,
+                     shard: tuple[int, int] = (1, 1)) -> GenerateSummary:
+    """Generate (or resume) the dataset ``config`` into ``out``; see the module docstring.
+
+    Tracks already on disk (and loadable) are skipped. The manifest is written when every track
+    of the preset exists, by whichever run (shard) completes the set.
+    """
+    t0 = time.perf_counter()
+    config.validate()
+    k, n = shard
+    if not 1 <= k <= n:
+        raise ConfigError(f"shard {k}/{n}: need 1 <= K <= N")
+    if workers < 1:
+        raise ConfigError(f"workers must be >= 1, got {workers}")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    logs = _load_trajectories(config.trajectories)
+    vehicles = _load_vehicles(config)
+    if not vehicles:
+        raise ConfigError(f"no vehicles to generate from (meshes={config.meshes!r})")
+    cfg = {**config_dict(config), "vehicles_digest": vehicles_digest(vehicles),
+           "trajectories_digest": _trajectories_digest(logs)}
+    _check_config(out, cfg)
+    splits = _splits(len(vehicles), config)
+    plan = _tracks.TrackPlan(config, [v.vehicle_id for v in vehicles], splits)
+
+    todo: dict[int, list[int]] = {}
+    entries: dict[str, dict] = {}
+    for v in _work_units(len(vehicles), config, shard):
+        for i in plan.track_indices(v):
+            e = _existing_entry(out, plan.track_id(i))
+            if e is None:
+                todo.setdefault(v, []).append(i)
+            else:
+                entries[e["track_id"]] = e
+    n_todo = sum(len(x) for x in todo.values())
+    log.info("%s: %d tracks in shard %d/%d, %d already done, %d to generate", out,
+             n_todo + len(entries), k, n, len(entries), n_todo)
+    if n_todo:
+        payload = _tracks.WorkerPayload.build(config, vehicles, splits, logs)
+        for e in _run(payload, todo, out, workers, n_todo):
+            entries[e["track_id"]] = e
+    manifest_written, missing = _maybe_write_manifest(out, plan, cfg, entries)
+    return GenerateSummary(plan.n_tracks, n_todo, len(entries) - n_todo, manifest_written,
+                           time.perf_counter() - t0, missing)
+
+
+def _existing_entry(out: Path, track_id: str) -> dict | None:
+    """The manifest entry of a finished track file, or None (missing or unreadable)."""
+    file = f"tracks/{track_id}.npz"
+    path = out / file
+    if not path.is_file():
+        return None
+    try:
+        return manifest_entry(load_track(path), file)
+    except DataError as exc:
+        log.warning("regenerating %s: %s", path, exc)
+        return None
+
+
+def _run(payload, todo: dict[int, list[int]], out: Path, workers: int, total: int):
+    """Generate the tracks of ``todo`` (vehicle -> track indices); yields manifest entries."""
+    from seqshape._progress import progress
+
+    units = [(v, idx, str(out)) for v, idx in sorted(todo.items())]
+    bar = progress(total=total, desc="generate", unit="track")
+    try:
+        if workers == 1 or len(units) == 1:
+            _tracks.init_worker(payload)
+            for unit in units:
+                for e in _tracks.work_unit(unit):
+                    bar.update(1)
+                    yield e
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(min(workers, len(units)), initializer=_tracks.init_worker,
+                          initargs=(payload,)) as pool:
+                for result in pool.imap_unordered(_tracks.work_unit, units, chunksize=1):
+                    bar.update(len(result))
+                    yield from result
+    finally:
+        bar.close()
+
+
+def _maybe_write_manifest(out: Path, plan, cfg: dict, entries: dict[str, dict]):
+    """Write the manifest if every track of the preset is on disk; return (written, missing)."""
+    missing = []
+    for i in range(plan.n_tracks):
+        tid = plan.track_id(i)
+        if tid in entries:
+            continue
+        e = _existing_entry(out, tid)
+        if e is None:
+            missing.append(tid)
+        else:
+            entries[tid] = e
+    if missing:
+        log.info("%s: %d of %d tracks still missing (other shards?); manifest not written yet",
+                 out, len(missing), plan.n_tracks)
+        return False, missing
+    write_manifest(out, list(entries.values()), cfg, preset=cfg["name"],
+                   splits={s: sum(e["split"] == s for e in entries.values())
+                           for s in ("train", "val")})
+    return True, []
+
+
+def preset_config(name: str, **overrides) -> GenerateConfig:
+    """The preset ``name`` with fields replaced by the non-None ``overrides``."""
+    try:
+        base = PRESETS[name]
+    except KeyError:
+        raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None
+    cfg = replace(base, **{k: v for k, v in overrides.items() if v is not None})
+    cfg.validate()
+    return cfg
+
+
+def make_track_in_process(config: GenerateConfig, vehicles, splits, index: int,
+                          logs=()) -> Track:
+    """Build one track without writing it (for tests and notebooks)."""
+    _tracks.init_worker(_tracks.WorkerPayload.build(config, vehicles, splits, list(logs)))
+    return _tracks.make_track(index)

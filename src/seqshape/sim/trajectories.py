@@ -1,0 +1,321 @@
+"""Planar vehicle trajectories in the sensor frame: a kinematic bicycle model, or CSV logs.
+
+The model is the kinematic bicycle with the reference point on the rear axle:
+
+    x' = v cos(psi),   y' = v sin(psi),   psi' = v tan(delta) / L,
+
+with wheelbase ``L`` (60 % of the vehicle's length, axles symmetric about the box centre).
+The steering ``delta`` is given as a function of the travelled arc length (so the path of a
+manoeuvre keeps its geometry whatever the speed) and the speed ``v`` as a function of time; the
+steering is limited to 35 degrees. The pose reported is that of the bounding-box centre, half a
+wheelbase ahead of the rear axle, which has the small side-slip of a real car in a turn.
+
+Manoeuvres: ``straight`` (gently curved road), ``turn`` (60-100 deg at an intersection),
+``lane_change``, ``stop_and_go``, ``u_turn`` and ``parked``. A sampled track is placed so that
+the vehicle passes the sensor: at a random frame it is at the sampled closest distance (3 to
+0.75 * max_distance m, log-uniform) moving across the line of sight with a varied heading; no
+frame brings its footprint closer than ``min_clearance`` to the sensor or its centre closer
+than ``min_distance``, and speeds are scaled down so that the track stays within
+``max_distance``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.special import ndtr
+
+from seqshape.errors import ConfigError, DataError
+
+MANOEUVRES = {"straight": 0.32, "turn": 0.18, "lane_change": 0.15, "stop_and_go": 0.12,
+              "u_turn": 0.05, "parked": 0.18}
+MAX_STEER = math.radians(35.0)
+_DS = 0.1  # arc-length step (m) of the path integration
+
+
+@dataclass
+class Trajectory:
+    """A planar trajectory in the sensor frame: ``(T,)`` float64 arrays.
+
+    ``x, y`` position of the vehicle's bounding-box centre (m), ``yaw`` its heading (rad,
+    wrapped to [-pi, pi)), ``t`` time (s, strictly increasing). ``manoeuvre`` names how it was
+    made ("straight", ..., or "csv"), ``source`` the CSV file when read from one.
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    yaw: np.ndarray
+    manoeuvre: str = ""
+    source: str = ""
+
+    def __post_init__(self):
+        for k in ("t", "x", "y", "yaw"):
+            setattr(self, k, np.asarray(getattr(self, k), dtype=np.float64).reshape(-1))
+        if not len(self.t) == len(self.x) == len(self.y) == len(self.yaw):
+            raise ValueError("trajectory arrays t, x, y, yaw differ in length")
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def poses(self, z: float) -> np.ndarray:
+        """``(T, 4)`` poses (x, y, z, yaw) with a constant height ``z``."""
+        return np.stack([self.x, self.y, np.full(len(self), float(z)), self.yaw], 1)
+
+
+# --------------------------------------------------------------------------- track lengths
+
+def _truncated_lognormal_mean(mu: float, sigma: float, lo: float, hi: float) -> float:
+    a, b = (math.log(lo) - mu) / sigma, (math.log(hi) - mu) / sigma
+    return math.exp(mu + sigma ** 2 / 2) * (ndtr(b - sigma) - ndtr(a - sigma)) / (ndtr(b) - ndtr(a))
+
+
+def sample_track_length(rng: np.random.Generator, min_frames: int = 10, max_frames: int = 200,
+                        mean_frames: float = 70.0, sigma: float = 0.7) -> int:
+    """A track length in ``[min_frames, max_frames]``: log-normal truncated to that range, with
+    its location chosen so that the truncated mean is ``mean_frames``."""
+    if not 1 <= min_frames <= mean_frames <= max_frames:
+        raise ConfigError(f"need 1 <= min_frames ({min_frames}) <= mean_frames ({mean_frames}) "
+                          f"<= max_frames ({max_frames})")
+    if min_frames == max_frames:
+        return int(min_frames)
+    from scipy.optimize import brentq
+
+    lo, hi = min_frames - 0.5, max_frames + 0.5
+    mu = brentq(lambda m: _truncated_lognormal_mean(m, sigma, lo, hi) - mean_frames,
+                math.log(lo) - 5 * sigma, math.log(hi) + 5 * sigma)
+    while True:
+        n = int(round(rng.lognormal(mu, sigma)))
+        if min_frames <= n <= max_frames:
+            return n
+
+
+# ------------------------------------------------------------------------ speed and steering
+
+def _smooth_noise(rng, t: np.ndarray, amplitude: float) -> np.ndarray:
+    """A smooth zero-mean signal: three sinusoids with periods of 3-15 s."""
+    out = np.zeros_like(t)
+    for _ in range(3):
+        out += np.sin(2 * np.pi * t / rng.uniform(3.0, 15.0) + rng.uniform(0, 2 * np.pi))
+    return amplitude * out / 3.0
+
+
+def _speed_profile(rng, manoeuvre: str, t: np.ndarray) -> np.ndarray:
+    """Speed (m/s) at times ``t`` for a manoeuvre (non-negative)."""
+    if manoeuvre == "parked":
+        return np.zeros_like(t)
+    lo, hi = {"straight": (4.0, 14.0), "turn": (3.0, 8.0), "lane_change": (6.0, 14.0),
+              "stop_and_go": (4.0, 10.0), "u_turn": (2.0, 5.0)}[manoeuvre]
+    v0 = rng.uniform(lo, hi)
+    v = v0 * (1.0 + _smooth_noise(rng, t, 0.12))
+    if manoeuvre == "stop_and_go":
+        dur = t[-1] - t[0] if len(t) > 1 else 0.0
+        # comes to rest at t_zero inside the track (braking from earlier, or already slow)
+        t_zero = t[0] + rng.uniform(0.2, 0.7) * dur
+        dec, acc = rng.uniform(1.5, 3.0), rng.uniform(1.0, 2.5)
+        wait = rng.uniform(1.0, 4.0)
+        env = np.clip((t_zero - t) * dec, 0.0, None)              # braking ramp to 0
+        env = np.where(t > t_zero, np.clip((t - t_zero - wait) * acc, 0.0, None), env)
+        v = np.minimum(v, env)
+    return np.maximum(v, 0.0)
+
+
+def _trapezoid(s, s0, length, ramp, value):
+    """A curvature pulse: linear ramp up, plateau, ramp down; its integral is ``value*(length)``."""
+    ramp = min(ramp, length / 2)
+    plateau = length - ramp
+    up = np.clip((s - s0) / ramp, 0, 1)
+    down = np.clip((s0 + plateau + ramp - s) / ramp, 0, 1)
+    return value * np.minimum(up, down)
+
+
+def _curvature(rng, manoeuvre: str, s: np.ndarray, total: float) -> np.ndarray:
+    """Path curvature (1/m) of the rear axle along arc length ``s`` for a manoeuvre."""
+    kappa = rng.uniform(0, 0.004) * np.sin(2 * np.pi * s / rng.uniform(80, 300)
+                                           + rng.uniform(0, 2 * np.pi))
+    sign = rng.choice([-1.0, 1.0])
+    if manoeuvre in ("turn", "u_turn"):
+        if manoeuvre == "turn":
+            angle, radius, ramp = math.radians(rng.uniform(60, 100)), rng.uniform(6, 20), 3.0
+        else:
+            angle, radius, ramp = math.pi, rng.uniform(4.5, 7.0), 1.5
+        length = angle * radius  # arc length of the turn; the trapezoid keeps the total angle
+        s0 = rng.uniform(0.1, 0.5) * max(total - length, 0.0)
+        kappa = kappa + _trapezoid(s, s0, length, ramp, sign / radius)
+    elif manoeuvre == "lane_change":
+        shift, length = rng.uniform(3.0, 3.8), rng.uniform(25.0, 60.0)
+        s0 = rng.uniform(0.1, 0.6) * max(total - length, 0.0)
+        k0 = 2 * np.pi * shift / length ** 2
+        inside = (s >= s0) & (s <= s0 + length)
+        kappa = kappa + np.where(inside, sign * k0 * np.sin(2 * np.pi * (s - s0) / length), 0.0)
+    return kappa
+
+
+def bicycle_path(rng, manoeuvre: str, t: np.ndarray, wheelbase: float, speed_scale=1.0):
+    """Integrate the bicycle model from the origin heading +x: centre ``x, y, yaw`` at ``t``."""
+    v = _speed_profile(rng, manoeuvre, t) * speed_scale
+    dt = np.diff(t, prepend=t[0])
+    s_t = np.cumsum(0.5 * (v + np.concatenate([v[:1], v[:-1]])) * dt)  # trapezoidal arc length
+    total = float(s_t[-1])
+    s = np.arange(0.0, total + 2 * _DS, _DS)
+    kappa = np.clip(_curvature(rng, manoeuvre, s, total), -math.tan(MAX_STEER) / wheelbase,
+                    math.tan(MAX_STEER) / wheelbase)
+    psi = np.concatenate([[0.0], np.cumsum(0.5 * (kappa[1:] + kappa[:-1]) * _DS)])
+    xr = np.concatenate([[0.0], np.cumsum(0.5 * (np.cos(psi[1:]) + np.cos(psi[:-1])) * _DS)])
+    yr = np.concatenate([[0.0], np.cumsum(0.5 * (np.sin(psi[1:]) + np.sin(psi[:-1])) * _DS)])
+    yaw = np.interp(s_t, s, psi)
+    x = np.interp(s_t, s, xr) + wheelbase / 2 * np.cos(yaw)
+    y = np.interp(s_t, s, yr) + wheelbase / 2 * np.sin(yaw)
+    return x, y, yaw
+
+
+# --------------------------------------------------------------------------------- placement
+
+def footprint_distance(x, y, yaw, length: float, width: float) -> np.ndarray:
+    """Planar distance ``(T,)`` from the sensor (origin) to the vehicle's footprint rectangle."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    qx, qy = -(c * x + s * y), -(-s * x + c * y)  # sensor in the canonical frame
+    dx = np.maximum(np.abs(qx) - length / 2, 0.0)
+    dy = np.maximum(np.abs(qy) - width / 2, 0.0)
+    return np.hypot(dx, dy)
+
+
+def _place(x, y, yaw, k: int, dist: float, bearing: float, heading: float):
+    """Rigidly move a path so that frame ``k`` sits at ``dist, bearing`` with ``heading``."""
+    rot = heading - yaw[k]
+    c, s = math.cos(rot), math.sin(rot)
+    xr, yr = c * x - s * y, s * x + c * y
+    px, py = dist * math.cos(bearing), dist * math.sin(bearing)
+    return xr - xr[k] + px, yr - yr[k] + py, yaw + rot
+
+
+def sample_trajectory(rng: np.random.Generator, n_frames: int | None = None,
+                      manoeuvre: str | None = None, length: float = 4.5, width: float = 1.8,
+                      rate_hz: float = 10.0, min_distance: float = 3.0,
+                      max_distance: float = 60.0, min_clearance: float = 1.5,
+                      min_frames: int = 10, max_frames: int = 200,
+                      mean_frames: float = 70.0) -> Trajectory:
+    """A random track of a ``length x width`` vehicle passing the sensor (see module doc).
+
+    ``n_frames`` / ``manoeuvre`` are drawn when None (lengths from
+    :func:`sample_track_length`, manoeuvres with the weights of ``MANOEUVRES``).
+    """
+    if manoeuvre is None:
+        names = list(MANOEUVRES)
+        manoeuvre = names[rng.choice(len(names), p=np.array(list(MANOEUVRES.values())))]
+    if manoeuvre not in MANOEUVRES:
+        raise ConfigError(f"unknown manoeuvre {manoeuvre!r}; choose from {sorted(MANOEUVRES)}")
+    if not 0 < min_distance < max_distance:
+        raise ConfigError(f"need 0 < min_distance ({min_distance}) < max_distance "
+                          f"({max_distance})")
+    if n_frames is None:
+        n_frames = sample_track_length(rng, min_frames, max_frames, mean_frames)
+    t = np.arange(int(n_frames)) / rate_hz
+    wheelbase = 0.6 * length
+    near = max(min_distance, min_clearance + math.hypot(length, width) / 2)
+    far = max(near + 1.0, 0.75 * max_distance)
+    dist = math.exp(rng.uniform(math.log(near), math.log(far)))
+    bearing = rng.uniform(-math.pi, math.pi)
+    k = int(rng.integers(0, n_frames))
+    if manoeuvre == "parked":
+        heading = rng.uniform(-math.pi, math.pi)
+    else:
+        heading = bearing + rng.choice([-1.0, 1.0]) * math.pi / 2 + rng.normal(0, 0.35)
+    path_seed = rng.integers(2 ** 63)
+    scale = 1.0
+    for _ in range(12):
+        # the same path draws at every attempt: only the speed scale and the offset change
+        x, y, yaw = bicycle_path(np.random.default_rng(path_seed), manoeuvre, t, wheelbase,
+                                 scale)
+        d = dist
+        for _ in range(20):
+            px, py, pyaw = _place(x, y, yaw, k, d, bearing, heading)
+            gap = np.minimum(footprint_distance(px, py, pyaw, length, width) - min_clearance,
+                             np.hypot(px, py) - min_distance).min()
+            if gap >= 0:
+                break
+            d += 0.5 - gap
+        reach = np.hypot(px, py).max()
+        if reach <= max_distance or manoeuvre == "parked":
+            break
+        scale *= 0.9 * max(max_distance - d, 1.0) / max(reach - d, 1.0)
+    return Trajectory(t, px, py, (pyaw + np.pi) % (2 * np.pi) - np.pi, manoeuvre)
+
+
+def footprints_overlap(poses_a, size_a, poses_b, size_b, margin: float = 0.3) -> np.ndarray:
+    """Per frame, do two vehicles' footprints (grown by ``margin`` m) overlap? ``(T,)`` bool.
+
+    ``poses_*`` are ``(T, 4)``; ``size_*`` (length, width, height). Separating-axis test.
+    """
+    pa, pb = np.asarray(poses_a, float), np.asarray(poses_b, float)
+    ha = np.asarray(size_a[:2], float) / 2 + margin / 2
+    hb = np.asarray(size_b[:2], float) / 2 + margin / 2
+    axes_a = np.stack([np.stack([np.cos(pa[:, 3]), np.sin(pa[:, 3])], -1),
+                       np.stack([-np.sin(pa[:, 3]), np.cos(pa[:, 3])], -1)], 1)  # (T, 2, 2)
+    axes_b = np.stack([np.stack([np.cos(pb[:, 3]), np.sin(pb[:, 3])], -1),
+                       np.stack([-np.sin(pb[:, 3]), np.cos(pb[:, 3])], -1)], 1)
+    d = pb[:, :2] - pa[:, :2]
+    separated = np.zeros(len(pa), dtype=bool)
+    for axis in np.concatenate([axes_a, axes_b], 1).transpose(1, 0, 2):  # 4 axes of (T, 2)
+        ra = np.abs(np.einsum("tij,tj->ti", axes_a, axis)) @ ha
+        rb = np.abs(np.einsum("tij,tj->ti", axes_b, axis)) @ hb
+        separated |= np.abs(np.einsum("ti,ti->t", d, axis)) > ra + rb
+    return ~separated
+
+
+# ---------------------------------------------------------------------------------- CSV logs
+
+_COLUMNS = ("t", "x", "y", "yaw")
+
+
+def read_trajectory_csv(path: str | Path) -> Trajectory:
+    """Read a trajectory from a CSV file with a header naming the columns ``t, x, y, yaw``.
+
+    Columns may come in any order (extra columns are ignored); units are seconds, metres and
+    radians; positions are the bounding-box centre in the sensor frame. Each row becomes one
+    LiDAR frame. Raises :class:`DataError` naming the file (and line) for a missing file or
+    column, a malformed or non-finite number, or times that do not strictly increase.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (FileNotFoundError, IsADirectoryError):
+        raise DataError(path, "trajectory file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(path, f"unreadable trajectory file ({exc})") from None
+    rows = list(csv.reader(text.splitlines()))
+    if not rows or not any(c.strip() for c in rows[0]):
+        raise DataError(path, "empty file: expected a header with columns t,x,y,yaw", line=1)
+    header = [c.strip().lower() for c in rows[0]]
+    missing = [c for c in _COLUMNS if c not in header]
+    if missing:
+        raise DataError(path, f"missing column(s) {missing} in header {rows[0]} "
+                              f"(need {list(_COLUMNS)})", line=1)
+    cols = [header.index(c) for c in _COLUMNS]
+    values = []
+    for lineno, row in enumerate(rows[1:], start=2):
+        if not row or not any(c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise DataError(path, f"expected {len(header)} fields, got {len(row)}", line=lineno)
+        try:
+            vals = [float(row[c]) for c in cols]
+        except ValueError:
+            raise DataError(path, f"not a number in {[row[c] for c in cols]}",
+                            line=lineno) from None
+        bad = [n for n, v in zip(_COLUMNS, vals) if not math.isfinite(v)]
+        if bad:
+            raise DataError(path, f"non-finite value in column(s) {bad}", line=lineno)
+        if values and vals[0] <= values[-1][1][0]:
+            raise DataError(path, f"time {vals[0]} does not increase (previous row: "
+                                  f"{values[-1][1][0]})", line=lineno)
+        values.append((lineno, vals))
+    if not values:
+        raise DataError(path, "no data rows after the header")
+    a = np.array([v for _, v in values])
+    return Trajectory(a[:, 0], a[:, 1], a[:, 2], (a[:, 3] + np.pi) % (2 * np.pi) - np.pi,
+                      "csv", str(path))
