@@ -42,9 +42,9 @@ class TrainConfig:
     stages: tuple[StageConfig, ...] = (StageConfig(3000), StageConfig(1000),
                                        StageConfig(3000, lr=5e-4))
     """The three stages, in order (shape, pose, joint)."""
-    window: int = 8
+    window: int = 12
     """W: consecutive frames per training window (the GRU starts from zero at its first)."""
-    batch_size: int = 8
+    batch_size: int = 6
     """Windows per optimiser step and process (frames per step = batch_size * window)."""
     num_complete_gt: int = 1024
     """Ground-truth complete points per window used by both losses."""
@@ -125,7 +125,7 @@ class TrainConfig:
 
 
 TRAIN_PRESETS: dict[str, TrainConfig] = {
-    # ~0.3 s per step on one core (64 frames): the step counts are upper bounds, pair with
+    # ~0.4 s per step on one core (72 frames): the step counts are upper bounds, pair with
     # --time-budget-min to fit a wall-clock slot.
     "small": TrainConfig(),
     "paper": TrainConfig(model_preset="paper", batch_size=16, window=12,

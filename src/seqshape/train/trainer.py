@@ -252,7 +252,7 @@ class Trainer:
             torch.nn.utils.clip_grad_norm_(params, c.grad_clip)
         opt.step()
         out = {"loss": float(loss.detach()), "lr": lr, "frames": float(res["frames"])}
-        out.update({k: float(res[k]) for k in ("cd", "pose") if k in res})
+        out.update({k: float(res[k].detach()) for k in ("cd", "pose") if k in res})
         return out
 
     def _run_stage(self, stage: int) -> None:

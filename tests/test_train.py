@@ -1,0 +1,161 @@
+"""The three-stage trainer: the loss falls, checkpoints resume bit-identically, files."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from _model_data import make_dataset
+from seqshape.data.windows import WindowDataset, batch_for_step, stream_indices
+from seqshape.errors import ConfigError
+from seqshape.model import Estimator
+from seqshape.train import TrainConfig, Trainer, get_train_config
+from seqshape.train.checkpoint import load_checkpoint
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("tracks") / "ds")
+
+
+def _weights(path):
+    return torch.load(path, weights_only=True)["state_dict"]
+
+
+def test_loss_falls_and_files(dataset, tmp_path):
+    cfg = get_train_config("smoke")
+    tr = Trainer(dataset.path, tmp_path / "run", "sequential", cfg)
+    before = tr.validate(0)
+    path = tr.run()
+    after = tr.metrics
+    assert after["val_cd_m"] < 0.8 * before["val_cd_m"]
+    rows = list(csv.DictReader(open(tmp_path / "run" / "log.csv")))
+    stage1 = [float(r["loss"]) for r in rows if r["kind"] == "train" and r["stage"] == "1"]
+    assert stage1[-1] < stage1[0]
+    assert {r["stage"] for r in rows} == {"1", "2", "3"}
+    conf = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert conf["kind"] == "sequential" and conf["model_config"]["num_complete"] == 128
+    payload = torch.load(path, weights_only=True)
+    assert payload["format"] == "seqshape-checkpoint" and "training" not in payload
+    assert TrainConfig.from_dict(payload["train_config"]) == cfg
+    for k in ("stage1.pt", "stage2.pt", "stage3.pt", "last.pt"):
+        assert load_checkpoint(tmp_path / "run" / k)["training"]["stage"] == int(k[5]) \
+            if k != "last.pt" else True
+    est = Estimator.from_checkpoint(path)
+    assert est.recurrent and est.config.num_complete == 128
+
+
+def test_stage2_trains_only_the_pose_decoder(dataset, tmp_path):
+    cfg = get_train_config("smoke")
+    run = tmp_path / "run"
+    Trainer(dataset.path, run, "baseline", cfg).run()
+    s1 = load_checkpoint(run / "stage1.pt")["state_dict"]
+    s2 = load_checkpoint(run / "stage2.pt")["state_dict"]
+    for k in s1:
+        same = torch.equal(s1[k], s2[k])
+        assert same != k.startswith("pose_decoder."), k
+
+
+class _Kill(Exception):
+    pass
+
+
+def _run_until(dataset, out, cfg, kill_at=None, resume=False):
+    tr = Trainer(dataset.path, out, "sequential", cfg, resume=resume)
+    if kill_at is not None:
+        orig = tr._train_step
+
+        def step(*a, **k):
+            if tr.state["global_step"] == kill_at:
+                raise _Kill
+            return orig(*a, **k)
+
+        tr._train_step = step
+    try:
+        return tr.run()
+    except _Kill:
+        tr.runlog.close()
+        return None
+
+
+def test_resume_is_bit_identical(dataset, tmp_path):
+    cfg = get_train_config("smoke")
+    ref = _run_until(dataset, tmp_path / "ref", cfg)
+    out = tmp_path / "killed"
+    assert _run_until(dataset, out, cfg, kill_at=8) is None          # mid stage 1 (ckpt at 5)
+    assert _run_until(dataset, out, cfg, kill_at=21, resume=True) is None  # mid stage 3
+    ck = load_checkpoint(out / "last.pt")["training"]
+    assert (ck["stage"], ck["step"], ck["sigma_init"]) == (2, 5, True)
+    got = _run_until(dataset, out, cfg, resume=True)
+    a, b = _weights(ref), _weights(got)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    rows_ref = [r["global_step"] for r in csv.DictReader(open(tmp_path / "ref" / "log.csv"))]
+    rows_got = [r["global_step"] for r in csv.DictReader(open(out / "log.csv"))]
+    assert rows_ref == rows_got
+
+
+def test_existing_run_needs_resume(dataset, tmp_path):
+    cfg = dataclasses.replace(get_train_config("smoke"),
+                              stages=get_train_config("smoke").with_stage_steps((5, 0, 0)).stages)
+    Trainer(dataset.path, tmp_path / "r", "baseline", cfg).run()
+    with pytest.raises(ConfigError, match="--resume"):
+        Trainer(dataset.path, tmp_path / "r", "baseline", cfg)
+    with pytest.raises(ConfigError, match="baseline"):
+        Trainer(dataset.path, tmp_path / "r", "sequential", cfg, resume=True)
+
+
+def test_windows_deterministic_and_sharded(dataset):
+    tracks = dataset.split("train")
+    a = WindowDataset(tracks, window=5, num_points=32, num_complete=64, seed=3, key=1)
+    b = WindowDataset(tracks, window=5, num_points=32, num_complete=64, seed=3, key=1)
+    wa, wb = a.window_at(4, 2), b.window_at(4, 2)
+    assert all(np.array_equal(wa[k], wb[k]) for k in wa)
+    assert wa["points"].shape == (5, 32, 3) and wa["complete"].shape == (64, 3)
+    assert np.all(wa["lengths"] <= 32)
+    # the two ranks of a 2-process step take the two halves of the 1-process double batch
+    one = stream_indices(len(a), 3, 1, 2 * 8, 8)
+    two = [p for r in range(2) for p in stream_indices(len(a), 3, 1, 2 * 4 * 2 + r * 4, 4)]
+    assert one == two
+    epoch0 = [i for _, i in stream_indices(len(a), 3, 1, 0, len(a))]
+    assert sorted(epoch0) == list(range(len(a)))  # each epoch is a permutation
+    full = batch_for_step(a, 2, 4, 0, 1)
+    assert full["points"].shape == (4, 5, 32, 3)
+    starts = [a.window_at(i, 0)["start"] for i in range(len(a))]
+    assert 0 in starts and max(starts) > 0
+
+
+def test_cli_train_and_resume(dataset, tmp_path):
+    from seqshape.cli import main
+
+    out = tmp_path / "cli"
+    args = ["train", "--data", str(dataset.path), "--out", str(out), "--preset", "smoke",
+            "--model", "baseline", "--stage-steps", "4,2,2", "--seed", "5"]
+    assert main(args) == 0
+    assert main(args) == 1  # exists without --resume
+    assert main(args + ["--resume"]) == 0
+    assert json.loads((out / "config.json").read_text())["train_config"]["seed"] == 5
+
+
+@pytest.mark.slow
+def test_torchrun_two_processes(dataset, tmp_path):
+    torchrun = shutil.which("torchrun") or os.path.join(os.path.dirname(sys.executable),
+                                                        "torchrun")
+    out = tmp_path / "ddp"
+    cmd = [torchrun, "--nproc_per_node", "2", "--master_port", "29531", "-m", "seqshape.cli",
+           "train", "--data", str(dataset.path), "--out", str(out), "--preset", "smoke",
+           "--stage-steps", "4,2,3"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    conf = json.loads((out / "config.json").read_text())
+    assert conf["world_size"] == 2
+    assert Estimator.from_checkpoint(out / "model.pt").recurrent
