@@ -74,4 +74,7 @@ def test_circumradius_and_auto_radius():
     assert circumradii(tri)[0] == pytest.approx(np.sqrt(2))
     assert np.isinf(circumradii(np.array([[[0, 0], [1, 1], [2, 2]]], float))[0])
     grid = np.stack(np.meshgrid(np.arange(20), np.arange(20)), -1).reshape(-1, 2) * 2.0
-    assert auto_alpha_radius(grid) == pytest.approx(6.0)  # 3 x spacing 2
+    assert auto_alpha_radius(grid) == pytest.approx(6.0)  # 3 x spacing 2 (> 3 x R = 4.24)
+    rings = np.stack(np.meshgrid(np.arange(0, 100, 0.5), np.arange(0, 50, 5.0)), -1)
+    r = auto_alpha_radius(rings.reshape(-1, 2))  # scan lines: 0.5 px along, 5 px across
+    assert r > 5.0 and r < 10.0

@@ -10,12 +10,17 @@ is kept when its circumradius is below ``1 / alpha`` pixels; the kept triangles 
 ``cv2.fillPoly`` at 1/16-pixel precision. Pixel ``(row v, column u)`` is the one whose centre is
 at image coordinates ``(u, v)`` (the KITTI projection convention).
 
-Automatic alpha (``alpha=None``): radius ``r = max(ALPHA_SPACING_FACTOR * s, MIN_RADIUS_PX)``
-where ``s`` is the 90th percentile of the nearest-neighbour distances of the (deduplicated)
-points. For a roughly uniform sample the Delaunay circumradii of interior triangles are about the
-local spacing, so a few spacings keep every interior triangle while rejecting the long slivers
-that bridge concavities or gaps. The 90th percentile (rather than the median) makes the rule
-tolerant of the uneven density of projected surfaces (grazing surfaces project densely).
+Automatic alpha (``alpha=None``): radius
+``r = max(NN_FACTOR * s_nn, TRI_FACTOR * r_med, MIN_RADIUS_PX)`` where ``s_nn`` is the 90th
+percentile of the nearest-neighbour distances of the (deduplicated) points and ``r_med`` the
+median circumradius of the Delaunay triangles. For a roughly uniform sample the circumradii of
+interior triangles are about the local spacing, so a few spacings keep every interior triangle
+while rejecting the long slivers that bridge concavities or gaps. The 90th percentile (rather
+than the median) tolerates the uneven density of projected surfaces (grazing surfaces project
+densely); the circumradius term handles anisotropic samples such as LiDAR scan lines, dense
+along a ring but several pixels apart across rings (there the nearest-neighbour distance is
+the along-ring spacing, but most triangles span two rings and the median circumradius is about
+half the ring gap).
 """
 
 from __future__ import annotations
@@ -28,19 +33,31 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 log = logging.getLogger(__name__)
 
-ALPHA_SPACING_FACTOR = 3.0
+NN_FACTOR = 3.0
+TRI_FACTOR = 3.0
 MIN_RADIUS_PX = 1.5
 _SHIFT = 4  # cv2 fixed-point bits: vertices at 1/16 px
 _FAR = 4.0  # coordinates clipped to [-_FAR * size, (1 + _FAR) * size] before rasterising
 
 
-def auto_alpha_radius(uv: np.ndarray) -> float:
-    """The automatic circumradius threshold (pixels) for points ``uv (N, 2)`` (module doc)."""
+def auto_alpha_radius(uv: np.ndarray, radii: np.ndarray | None = None) -> float:
+    """The automatic circumradius threshold (pixels) for points ``uv (N, 2)`` (module doc).
+
+    ``radii`` are the circumradii of the points' Delaunay triangles when already known.
+    """
     uv = np.unique(np.asarray(uv, dtype=np.float64).reshape(-1, 2), axis=0)
     if len(uv) < 2:
         return MIN_RADIUS_PX
     d, _ = cKDTree(uv).query(uv, k=2)  # (N, 2); column 0 is the point itself
-    return float(max(ALPHA_SPACING_FACTOR * np.quantile(d[:, 1], 0.9), MIN_RADIUS_PX))
+    r = max(NN_FACTOR * np.quantile(d[:, 1], 0.9), MIN_RADIUS_PX)
+    if radii is None and len(uv) >= 3:
+        try:
+            radii = circumradii(uv[Delaunay(uv).simplices])
+        except QhullError:
+            radii = None
+    if radii is not None and np.isfinite(radii).any():
+        r = max(r, TRI_FACTOR * float(np.median(radii[np.isfinite(radii)])))
+    return float(r)
 
 
 def circumradii(vertices: np.ndarray) -> np.ndarray:
@@ -106,8 +123,12 @@ def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None
         _draw_degenerate(mask, pts, (h, w))
         return mask.astype(bool)
     verts = pts[tri.simplices]  # (T, 3, 2)
-    radius = auto_alpha_radius(pts) if alpha is None else (np.inf if alpha == 0 else 1.0 / alpha)
-    keep = circumradii(verts) < radius
+    radii = circumradii(verts)  # (T,)
+    if alpha is None:
+        radius = auto_alpha_radius(pts, radii)
+    else:
+        radius = np.inf if alpha == 0 else 1.0 / alpha
+    keep = radii < radius
     if not np.any(keep):
         log.debug("alpha shape: no triangle below radius %.2f px; drawing the points", radius)
         fixed = _to_fixed(pts, (h, w)) >> _SHIFT

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         seq = KittiTrackingSequence(args.kitti, args.sequence)
         ds = export_tracks(extract_tracks(seq), args.export_tracks)
         print(f"wrote {len(ds)} tracks to {args.export_tracks}; fine-tune with "
-              f"`seqshape train --data {args.export_tracks} --init pretrained ...`")
+              f"`seqshape train --data {args.export_tracks} --out RUN`")
         return 0
     if args.out is None:
         raise ConfigError("--out is required (unless --export-tracks)")
