@@ -1,0 +1,223 @@
+"""Camera + LiDAR scenes: exact masks, KINS / COCO files, labels, tracks, degradations."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from seqshape.amodal.degrade import (
+    NO_DEGRADE,
+    DegradeConfig,
+    Instance2D,
+    degrade_instances,
+    erode_dilate,
+)
+from seqshape.amodal.kins import annotations_by_image, occlusion_order, read_kins, rle_to_mask
+from seqshape.camera import kitti_default_calib, project_points
+from seqshape.data.kitti import KittiTrackingSequence, extract_tracks, read_velodyne
+from seqshape.errors import ConfigError, SeqshapeError
+from seqshape.geometry import sensor_to_canonical, wrap_angle
+from seqshape.sim.render import GROUND, camera_rays, cast_vehicle, render_camera
+from seqshape.sim.scene_writer import (
+    SceneConfig,
+    _rng,
+    generate_scenes,
+    generate_sequence,
+    load_scene,
+    occlusion_level,
+    render_frame,
+)
+from seqshape.sim.scenes import LayoutConfig, Road, build_scene, check_no_overlap
+from seqshape.sim.sensors import get_sensor
+
+SMALL = SceneConfig("kitti-tiny", 1, (6, 6), (5, 6))
+SEED = 0
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scenes")
+    result = generate_sequence(root, SMALL, SEED, 0, NO_DEGRADE, return_tracks=True)
+    return root, result
+
+
+def _frames(root):
+    doc = read_kins(root / "amodal" / "0000.json")
+    return doc, annotations_by_image(doc)
+
+
+def test_amodal_contains_visible_and_visible_disjoint(scene_dir):
+    root, _ = scene_dir
+    doc, by_image = _frames(root)
+    assert len(doc["annotations"]) > 0
+    for anns in by_image.values():
+        count = np.zeros((375, 1242), np.int64)
+        for ann in anns:
+            a, v = rle_to_mask(ann["a_segm"]), rle_to_mask(ann["i_segm"])
+            assert not (v & ~a).any()
+            assert v.sum() == ann["i_area"] and a.sum() == ann["a_area"]
+            assert ann["i_area"] >= SMALL.min_visible_area
+            count += v
+        assert count.max() <= 1  # visible masks are disjoint
+
+
+def test_unoccluded_vehicles_have_equal_masks(scene_dir):
+    root, _ = scene_dir
+    doc, _ = _frames(root)
+    free = [a for a in doc["annotations"] if not a["occluded_by"]]
+    hidden = [a for a in doc["annotations"] if a["occluded_by"]]
+    assert free and hidden
+    for a in free:
+        assert np.array_equal(rle_to_mask(a["a_segm"]), rle_to_mask(a["i_segm"]))
+    for a in hidden:
+        assert a["i_area"] < a["a_area"]
+
+
+def test_written_files_match_a_rerender(scene_dir):
+    """Determinism + RLE round trip: re-render frame 2 from scene/0000.json."""
+    root, _ = scene_dir
+    scene, meta = load_scene(root, "0000")
+    calib = kitti_default_calib()
+    pts, owner, cam = render_frame(scene, 2, calib, get_sensor("hdl64"), _rng(SEED, 0, 1, 2))
+    assert np.array_equal(read_velodyne(root / "velodyne/0000/000002.bin"), pts)
+    png = cv2.imread(str(root / "image_02/0000/000002.png"))[:, :, ::-1]
+    assert np.array_equal(png, cam.image)
+    _, by_image = _frames(root)
+    for ann in by_image[2]:
+        k = ann["track_id"]
+        assert np.array_equal(rle_to_mask(ann["a_segm"]), cam.amodal[k])
+        assert np.array_equal(rle_to_mask(ann["i_segm"]), cam.visible[k])
+    assert (owner == GROUND).sum() > 0.5 * len(owner)
+
+
+def test_tracks_read_back_match_generator(scene_dir):
+    root, result = scene_dir
+    tracks = {t.track_id: t for t in extract_tracks(KittiTrackingSequence(root, "0000"))}
+    own = {t.track_id: t for t in result.tracks}
+    assert set(tracks) == set(own) and own
+    for tid, mine in own.items():
+        read = tracks[tid]
+        assert read.meta["frames"] == mine.meta["frames"]
+        assert np.allclose(read.poses[:, :3], mine.poses[:, :3], atol=1e-4)
+        assert np.allclose(wrap_angle(read.poses[:, 3] - mine.poses[:, 3]), 0, atol=1e-4)
+        for t in range(len(mine)):
+            # extract_tracks drops the lowest 0.15 m of the box (ground removal)
+            local = sensor_to_canonical(mine.points[t].astype(np.float64), mine.poses[t])
+            expect = mine.points[t][local[:, 2] >= -mine.size[2] / 2 + 0.15]
+            got = read.points[t]
+            assert len(got) == len(expect)
+            assert np.array_equal(np.sort(got.view("f4,f4,f4"), 0), np.sort(
+                expect.view("f4,f4,f4"), 0))
+
+
+def test_labels_and_levels(scene_dir):
+    root, _ = scene_dir
+    seq = KittiTrackingSequence(root, "0000")
+    assert seq.labels and all(lab.type in ("Car", "Van") for lab in seq.labels)
+    assert all(0 <= lab.truncated <= 1 and lab.occluded in (0, 1, 2, 3) for lab in seq.labels)
+    assert occlusion_level(100, 100) == 0 and occlusion_level(60, 100) == 1
+    assert occlusion_level(10, 100) == 2 and occlusion_level(0, 100) == 3
+    assert seq.ego_poses is not None and len(seq.ego_poses) == 6
+
+
+def _box(length=4.0, width=1.8, height=1.5):
+    return trimesh.creation.box(extents=(length, width, height))
+
+
+def test_occlusion_order_two_vehicles():
+    """A car 10 m ahead hides part of one 20 m ahead, 1 m to the side."""
+    calib = kitti_default_calib()
+    meshes = [_box(), _box()]
+    z = -1.73 + 0.75
+    poses = np.array([[20.0, -1.0, z, 0.0], [10.0, 0.0, z, 0.0]])  # far first
+    cam = render_camera(meshes, poses, np.full((2, 3), 0.5), camera_rays(calib), -1.73)
+    far, near = 0, 1
+    assert np.array_equal(cam.amodal[near], cam.visible[near])
+    assert (cam.visible[far] & ~cam.amodal[far]).sum() == 0
+    hidden = cam.amodal[far] & ~cam.visible[far]
+    assert hidden.sum() > 100 and np.all(cam.owner[hidden] == near)
+    assert cam.nearest[near] < cam.nearest[far]
+    oco, ico = occlusion_order(cam.nearest, cam.amodal)
+    assert oco[0] == oco[1] and ico[near] == 1 and ico[far] == 2
+    # the near box alone: its visible mask equals its amodal mask and the depths agree
+    depth = cam.depth[cam.visible[near]]
+    assert np.all(depth < cam.nearest[far])
+
+
+def test_pixel_rays_project_to_their_pixels():
+    calib = kitti_default_calib()
+    rays = camera_rays(calib)
+    mesh = _box(4, 30, 10)
+    tri, rng, _ = cast_vehicle(mesh, np.array([15.0, 0.0, 0.0, 0.3]), rays.origin, rays.dirs)
+    hit = np.flatnonzero(tri >= 0)
+    assert len(hit) > 10000
+    uv, depth = project_points(rays.origin + rays.dirs[hit] * rng[hit, None], calib)
+    expect = np.c_[hit % rays.width, hit // rays.width]
+    assert np.abs(uv - expect).max() < 1e-6 and np.all(depth > 0)
+
+
+def test_scene_layout_has_no_overlap_and_road_round_trip():
+    from seqshape.vehicles import vehicle_library
+
+    vehicles = vehicle_library(20, seed=1)
+    for seed in range(5):
+        scene = build_scene(LayoutConfig(n_frames=60, n_vehicles=(10, 20)), vehicles,
+                            np.random.default_rng(seed), 1.73)
+        assert 5 <= len(scene.agents) <= 20
+        z = scene.sensor_poses(0)[:, 2]
+        assert np.allclose(z, -1.73 + np.array([scene.size(k)[2] / 2
+                                                for k in range(len(scene.agents))]))
+    scene.agents[1].world = scene.agents[0].world.copy()
+    with pytest.raises(SeqshapeError):
+        check_no_overlap(scene)
+    road = Road(kappa=1 / 250)
+    s, d = np.array([5.0, 80.0]), np.array([-4.0, 3.0])
+    assert np.allclose(road.to_road(*road.to_world(s, d)), (s, d))
+
+
+def test_resume_and_settings_check(tmp_path):
+    cfg = SceneConfig("kitti-tiny", 1, (2, 2), (5, 5))
+    assert len(generate_scenes(tmp_path, cfg, seed=1, progress_bar=False)) == 1
+    assert generate_scenes(tmp_path, cfg, seed=1, progress_bar=False) == []
+    with pytest.raises(ConfigError):
+        generate_scenes(tmp_path, cfg, seed=2, progress_bar=False)
+
+
+def _instances(n, size, rng, shape=(120, 200)):
+    out = []
+    for i in range(n):
+        m = np.zeros(shape, bool)
+        r, c = rng.integers(0, shape[0] - size), rng.integers(0, shape[1] - size)
+        m[r:r + size, c:c + size] = True
+        out.append(Instance2D(m, 1.0, 4, i))
+    return out
+
+
+def test_degrade_identity_and_morphology():
+    rng = np.random.default_rng(0)
+    inst = _instances(5, 20, rng)
+    same = degrade_instances(inst, NO_DEGRADE, rng)
+    assert [i.track_id for i in same] == list(range(5))
+    assert all(np.array_equal(a.mask, b.mask) for a, b in zip(inst, same, strict=True))
+    m = inst[0].mask
+    assert erode_dilate(m, 1).sum() == 20 * 20 + 4 * 20  # cross element grows each side by 1
+    assert erode_dilate(m, -1).sum() == 18 * 18
+
+
+def test_degrade_rates_change_instance_counts():
+    rng = np.random.default_rng(1)
+    images, n = 300, 8
+    cfg = DegradeConfig(miss_rate_small=0.25, miss_rate=0.0, jitter_px=(0.0, 0.0),
+                        false_rate=0.5)
+    small = [len([i for i in degrade_instances(_instances(n, 10, rng), cfg, rng)
+                  if i.track_id >= 0]) for _ in range(images)]
+    false = [len([i for i in degrade_instances(_instances(n, 40, rng), cfg, rng)
+                  if i.track_id < 0]) for _ in range(images)]
+    big_kept = [len([i for i in degrade_instances(_instances(n, 40, rng), cfg, rng)
+                     if i.track_id >= 0]) for _ in range(20)]
+    # small boxes (100 px) are missed at 25%: mean kept 6 +- 4 sigma of the mean
+    assert abs(np.mean(small) - n * 0.75) < 4 * np.sqrt(n * 0.25 * 0.75 / images)
+    assert abs(np.mean(false) - n * 0.5) < 4 * np.sqrt(n * 0.5 / images)
+    assert all(k == n for k in big_kept)  # 1600 px >= small_area: never missed
