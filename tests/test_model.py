@@ -1,0 +1,111 @@
+"""ShapePoseNet: shapes, masking, demeaning, empty frames, presets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from seqshape.data.windows import resample_frame
+from seqshape.errors import ConfigError
+from seqshape.model import MODEL_PRESETS, ModelConfig, ShapePoseNet
+
+TINY = ModelConfig(num_points=32, encoder1=(8, 16), encoder2=(16, 24), hidden=20,
+                   shape_decoder=(32,), pose_decoder=(16,), num_complete=40)
+
+
+@pytest.fixture(params=[True, False], ids=["sequential", "baseline"])
+def net(request):
+    torch.manual_seed(0)
+    return ShapePoseNet(TINY, recurrent=request.param).eval()
+
+
+def test_output_shapes_and_yaw_range(net):
+    pts, lengths = torch.randn(3, 5, 32, 3), torch.randint(1, 33, (3, 5))
+    out = net(pts, lengths)
+    assert out["complete"].shape == (3, 5, 40, 3)
+    assert out["pose"].shape == (3, 5, 4)
+    assert out["hidden"].shape == (3, 20)
+    assert torch.all(out["pose"][..., 3].abs() <= np.pi)
+
+
+def test_padding_is_ignored(net):
+    """Padded rows (whatever their values) change nothing: masked mean and masked max."""
+    pts = torch.randn(2, 3, 32, 3)
+    lengths = torch.tensor([[5, 12, 1], [32, 7, 3]])
+    out1 = net(pts, lengths)
+    mask = torch.arange(32) < lengths[..., None]
+    out2 = net(torch.where(mask[..., None], pts, torch.full_like(pts, 1e4)), lengths)
+    torch.testing.assert_close(out1["complete"], out2["complete"])
+    torch.testing.assert_close(out1["pose"], out2["pose"])
+
+
+def test_translation_equivariance(net):
+    """Demeaning: shifting a frame's points shifts its outputs by the same vector."""
+    pts, lengths = torch.randn(1, 4, 32, 3), torch.full((1, 4), 20)
+    shift = torch.tensor([10.0, -5.0, 1.0])
+    a, b = net(pts, lengths), net(pts + shift, lengths)
+    torch.testing.assert_close(b["complete"], a["complete"] + shift, atol=1e-4, rtol=0)
+    torch.testing.assert_close(b["pose"][..., :3], a["pose"][..., :3] + shift, atol=1e-4,
+                               rtol=0)
+    torch.testing.assert_close(b["pose"][..., 3], a["pose"][..., 3], atol=1e-5, rtol=0)
+
+
+def test_empty_frame_keeps_state_and_mean(net):
+    pts = torch.randn(1, 3, 32, 3) + 7.0
+    lengths = torch.tensor([[10, 0, 0]])
+    out = net(pts, lengths)
+    torch.testing.assert_close(out["complete"][0, 1], out["complete"][0, 0])
+    torch.testing.assert_close(out["complete"][0, 2], out["complete"][0, 0])
+    torch.testing.assert_close(out["pose"][0, 2], out["pose"][0, 0])
+    one = net(pts[:, :1], lengths[:, :1])
+    torch.testing.assert_close(out["hidden"], one["hidden"])
+    torch.testing.assert_close(out["mean"], pts[0, 0, :10].mean(0)[None])
+    assert out["seen"].tolist() == [[True, True, True]]
+
+
+def test_all_empty_window_from_a_state(net):
+    h0 = torch.randn(2, 20)
+    m0 = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]])
+    out = net(torch.zeros(2, 4, 32, 3), torch.zeros(2, 4, dtype=torch.long), h0, m0,
+              torch.tensor([True, False]))
+    assert torch.equal(out["hidden"], h0) and torch.equal(out["mean"], m0)
+    assert out["seen"].tolist() == [[True] * 4, [False] * 4]
+    assert torch.isfinite(out["complete"]).all()
+
+
+def test_recurrence_uses_the_past():
+    torch.manual_seed(1)
+    seq = ShapePoseNet(TINY, recurrent=True).eval()
+    base = ShapePoseNet(TINY, recurrent=False).eval()
+    pts = torch.randn(1, 2, 32, 3)
+    lengths = torch.full((1, 2), 32)
+    other_first = torch.cat([torch.randn(1, 1, 32, 3), pts[:, 1:]], 1)
+    for m, differs in ((seq, True), (base, False)):
+        a, b = m(pts, lengths)["complete"][0, 1], m(other_first, lengths)["complete"][0, 1]
+        assert (not torch.allclose(a, b)) == differs
+
+
+def test_any_number_of_points_resampled():
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 10, 10_000):
+        src = rng.normal(size=(n, 3)).astype(np.float32)
+        out, length = resample_frame(src, 32, rng)
+        assert out.shape == (32, 3) and out.dtype == np.float32 and length == min(n, 32)
+        if 0 < n <= 32:
+            np.testing.assert_array_equal(out[:n], src)
+        if n > 32:  # a subset without replacement
+            assert len({tuple(p) for p in out}) == 32
+            assert {tuple(p) for p in out} <= {tuple(p) for p in src}
+
+
+def test_presets_and_config_round_trip():
+    small, paper = MODEL_PRESETS["small"], MODEL_PRESETS["paper"]
+    assert small.num_complete == 1024 and small.encoder2 == (256, 256)
+    assert paper.encoder1 == (128, 256) and paper.encoder2 == (512, 1024)
+    assert paper.num_complete == 2048
+    assert ModelConfig.from_dict(small.to_dict()) == small
+    with pytest.raises(ConfigError):
+        ModelConfig(encoder1=())
+    with pytest.raises(ConfigError):
+        ModelConfig.from_dict({"bogus": 1})
