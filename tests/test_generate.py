@@ -239,3 +239,33 @@ def test_cli_tiny_runs_and_resumes(tmp_path, capsys):
     assert main(["generate", "--preset", "tiny", "--out", str(out), "--num-points", "256"]) == 0
     assert "0 tracks generated, 12 already there" in capsys.readouterr().out
     assert TrackDataset(out)[0].complete.shape == (256, 3)
+
+
+def test_stats_table_matches_hand_count(small, capsys):
+    from seqshape.scripts.stats import collect, format_table
+
+    ds = TrackDataset(small)
+    stats = collect(ds)
+    frames = sum(len(t) for t in ds)
+    pts = np.concatenate([t.num_points for t in ds])
+    dist = np.concatenate([np.hypot(t.poses[:, 0], t.poses[:, 1]) for t in ds])
+    assert len(stats["all"]["lengths"]) == 6 and int(np.sum(stats["all"]["lengths"])) == frames
+    table = format_table(stats)
+    assert f"| all   | 6      | {frames}" in table
+    near = pts[dist < 10]
+    if len(near):
+        assert f"{near.mean():.1f}" in table.split("0-10 m")[1].splitlines()[0]
+    assert main(["stats", str(small)]) == 0
+    assert "10-20 m" in capsys.readouterr().out
+
+
+def test_show_writes_png_and_offline_html(small, tmp_path, capsys):
+    tid = TrackDataset(small).track_ids[1]
+    assert main(["show", str(small), "--track", tid, "--out", str(tmp_path)]) == 0
+    png, html = tmp_path / f"{tid}.png", tmp_path / f"{tid}.html"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
+    text = html.read_text()
+    assert "Plotly.newPlot" in text and len(text) > 3_000_000  # plotly.js is embedded
+    assert '<script src="http' not in text and "<script src='http" not in text
+    assert main(["show", str(small), "--track", "nope", "--out", str(tmp_path)]) == 1
+    assert "no track 'nope'" in capsys.readouterr().err
