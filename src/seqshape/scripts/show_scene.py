@@ -101,6 +101,9 @@ def draw_scene_frame(root: Path, sequence: str, frame: int, out: Path, extent: f
     from seqshape.errors import DataError
 
     seq = KittiTrackingSequence(root, sequence)
+    if not seq.frames:
+        raise DataError(root, f"no sequence {seq.sequence} here (found "
+                              f"{KittiTrackingSequence.sequences(root)})")
     if frame not in seq.frames:
         raise DataError(seq.velodyne_path(frame), f"frame {frame} not in sequence {seq.sequence} "
                                                   f"(frames {seq.frames[:1]}..{seq.frames[-1:]})")
