@@ -43,7 +43,10 @@ def voxel_downsample(points, voxel: float) -> np.ndarray:
     if voxel <= 0 or len(points) == 0:
         return points.astype(np.float32)
     keys = np.floor(points / voxel).astype(np.int64)
-    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    keys -= keys.min(0)
+    dims = keys.max(0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
     sums = np.zeros((len(counts), 3))
     np.add.at(sums, inv.reshape(-1), points)
     return (sums / counts[:, None]).astype(np.float32)

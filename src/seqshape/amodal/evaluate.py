@@ -192,15 +192,18 @@ def _label_range(lab) -> float:
     return float(np.hypot(loc[0], loc[2]))
 
 
-def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = None
-                   ) -> tuple[list[InstanceResult], int]:
+def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = None,
+                   segm: str = "a_segm") -> tuple[list[InstanceResult], int]:
     """Score KINS label files ``[(pred_path, gt_path), ...]`` (images matched by file name).
 
     Reference images missing from the prediction count every instance as missed. Distances come
     from an annotation's ``distance`` key when present, else from the KITTI ``label_02`` file of
     the reference's sequence (matched by ``track_id``), else NaN. ``category_ids`` restricts both
-    sides to those categories (default: all).
+    sides to those categories (default: all). ``segm="i_segm"`` scores the visible masks instead
+    of the amodal ones (same matching rule).
     """
+    if segm not in ("a_segm", "i_segm"):
+        raise ValueError(f"segm must be 'a_segm' or 'i_segm', got {segm!r}")
     from seqshape.amodal.kins import read_kins, rle_to_mask
 
     results: list[InstanceResult] = []
@@ -228,8 +231,9 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
             dist = [a.get("distance", dists.get((frame, str(a.get("track_id"))), np.nan))
                     for a in anns]
             res, un = evaluate_image(
-                img["id"], [rle_to_mask(a["a_segm"]) for a in preds],
-                [rle_to_mask(a["a_segm"]) for a in anns], [a["i_area"] for a in anns], dist,
+                img["id"], [rle_to_mask(a[segm]) for a in preds],
+                [rle_to_mask(a[segm]) for a in anns],
+                [a["i_area"] for a in anns] if segm == "a_segm" else None, dist,
                 [a.get("track_id") for a in anns])
             for r in res:
                 r.image_id = img["file_name"]

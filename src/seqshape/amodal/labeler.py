@@ -106,7 +106,7 @@ def gt_track_inputs(seq, types=("Car", "Van")):
     return tracks, inputs
 
 
-def _clouds_by_frame(inputs, clouds_per_track) -> dict[int, dict[str, tuple]]:
+def clouds_by_frame(inputs, clouds_per_track) -> dict[int, dict[str, tuple]]:
     """``{frame: {track_id: (cloud, input)}}``."""
     out: dict[int, dict[str, tuple]] = {}
     for inp, clouds in zip(inputs, clouds_per_track, strict=True):
@@ -143,7 +143,7 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None) -> LabelRes
         clouds = [c.clouds for c in complete_tracks(est, inputs, cfg.refine)]
     timings["complete"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    result = render_labels(seq, _clouds_by_frame(inputs, clouds), cfg)
+    result = render_labels(seq, clouds_by_frame(inputs, clouds), cfg)
     timings["masks"] = time.perf_counter() - t0
     timings["total"] = sum(timings.values())
     timings["frames"] = len(seq.frames)

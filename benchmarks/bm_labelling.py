@@ -1,0 +1,161 @@
+"""Amodal labelling quality and throughput against exact ground truth (docs/amodal.md).
+
+    python benchmarks/bm_labelling.py [--scenes DIR] [--checkpoint PATH|pretrained]
+        [--sequences 2] [--frames 40] [--repeats 3] [--modes ...] [--refine ...]
+
+Generates (or reuses) a kitti-like scene set (``seqshape scenes --preset kitti-like``, fixed
+seed, default degraded 2D masks), labels every sequence with every mode / refinement, scores
+the labels with the evaluator (% miss, mIoU, mIoU with misses = 0; amodal, and visible masks
+too) and times the labelling (frames/s: a warm-up run, then the median of ``--repeats`` timed
+runs on the first sequence). Rows:
+
+* ``oracle-shape``: each vehicle's true mesh surface at its true pose; the upper bound of the
+  projection + alpha shape + occlusion steps (no estimation error);
+* ``gt-accumulation``, ``sc-gt``, ``sc-seg`` (the latter two with each ``--refine``).
+
+The sc-* rows need estimator weights: ``--checkpoint PATH`` or ``pretrained`` (skipped with a
+note when they cannot be loaded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("SEQSHAPE_PROGRESS", "0")
+
+from seqshape.amodal.evaluate import evaluate_files, summarise  # noqa: E402
+from seqshape.amodal.labeler import (LabelConfig, clouds_by_frame, gt_track_inputs,  # noqa: E402
+                                     label_sequence, load_estimator, render_labels,
+                                     write_labels)
+from seqshape.amodal.refine import REFINE_MODES  # noqa: E402
+from seqshape.data.kitti import KittiTrackingSequence  # noqa: E402
+
+
+def ensure_scenes(path: Path | None, sequences: int, frames: int, seed: int) -> Path:
+    """The scene set folder, generated with ``seqshape scenes`` when absent."""
+    from seqshape.amodal.degrade import DegradeConfig
+    from seqshape.sim.scene_writer import generate_scenes, scene_config
+
+    if path is None:
+        path = Path(tempfile.gettempdir()) / f"seqshape_bm_labelling_{sequences}x{frames}_{seed}"
+    if not (path / "scene.json").is_file() or not list((path / "amodal").glob("*.json")):
+        print(f"generating kitti-like scenes in {path} ...", flush=True)
+        cfg = scene_config("kitti-like", n_sequences=sequences, frames=(frames, frames))
+        generate_scenes(path, cfg, seed=seed, workers=1, degrade=DegradeConfig())
+    return path
+
+
+def oracle_labels(root: Path, sequence: str, cfg: LabelConfig):
+    """Labels from the true meshes at the true poses (upper bound of the mask steps)."""
+    from seqshape.amodal.accumulate import place_in_frames
+    from seqshape.sim.scene_writer import load_scene
+    from seqshape.vehicles.surface import sample_outer_surface
+
+    seq = KittiTrackingSequence(root, sequence)
+    scene, _ = load_scene(root, sequence)
+    by_tid = {a.track_id: k for k, a in enumerate(scene.agents)}
+    _, inputs = gt_track_inputs(seq, cfg.types)
+    clouds = []
+    for inp in inputs:
+        shape = sample_outer_surface(scene.mesh(by_tid[inp.label_id]), n=4096, seed=0)
+        clouds.append(place_in_frames(shape, inp.poses))
+    return render_labels(seq, clouds_by_frame(inputs, clouds), cfg)
+
+
+def run_method(root, sequences, name, cfg, estimator, out_dir):
+    """Label every sequence; returns (amodal metrics, visible metrics, frames, seconds)."""
+    pairs, frames, secs = [], 0, 0.0
+    for s in sequences:
+        t0 = time.perf_counter()
+        res = (oracle_labels(root, s, cfg) if name == "oracle-shape"
+               else label_sequence(root, s, cfg, estimator))
+        secs += time.perf_counter() - t0
+        frames += len(res.images)
+        path = out_dir / name / f"{s}.json"
+        write_labels(path, res)
+        pairs.append((path, root / "amodal" / f"{s}.json"))
+    amodal = summarise(*evaluate_files(pairs))
+    visible = summarise(*evaluate_files(pairs, segm="i_segm"))
+    return amodal, visible, frames, secs
+
+
+def time_method(root, sequence, name, cfg, estimator, repeats):
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = (oracle_labels(root, sequence, cfg) if name == "oracle-shape"
+               else label_sequence(root, sequence, cfg, estimator))
+        times.append(len(res.images) / (time.perf_counter() - t0))
+    return statistics.median(times), (min(times), max(times))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--scenes", type=Path, default=None, help="scene set (generated if absent)")
+    p.add_argument("--sequences", type=int, default=2)
+    p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--checkpoint", default="pretrained")
+    p.add_argument("--modes", nargs="+",
+                   default=["oracle-shape", "gt-accumulation", "sc-gt", "sc-seg"])
+    p.add_argument("--refine", nargs="+", default=list(REFINE_MODES), choices=REFINE_MODES)
+    p.add_argument("--order", default="pixel", choices=["pixel", "median"])
+    p.add_argument("--repeats", type=int, default=3, help="timed runs for frames/s (0: skip)")
+    p.add_argument("--out", type=Path, default=None, help="labels + results.json here")
+    args = p.parse_args(argv)
+
+    root = ensure_scenes(args.scenes, args.sequences, args.frames, args.seed)
+    sequences = KittiTrackingSequence.sequences(root)
+    out_dir = args.out or Path(tempfile.mkdtemp(prefix="bm_labelling_"))
+    estimator, note = None, ""
+    if any(m.startswith("sc-") for m in args.modes):
+        try:
+            estimator = load_estimator(args.checkpoint)
+            note = f"checkpoint: {args.checkpoint}"
+        except Exception as exc:  # report and go on with the modes that need no weights
+            note = f"sc-* rows skipped: cannot load {args.checkpoint!r} ({exc})"
+    print(f"scenes: {root} ({len(sequences)} sequences); {note}; occlusion order {args.order}")
+    rows = []
+    for mode in args.modes:
+        if mode.startswith("sc-") and estimator is None:
+            continue
+        for refine in (args.refine if mode.startswith("sc-") else ["none"]):
+            cfg = LabelConfig(mode="gt-accumulation" if mode == "oracle-shape" else mode,
+                              refine=refine, order=args.order, checkpoint=args.checkpoint)
+            name = mode if not mode.startswith("sc-") else f"{mode}/{refine}"
+            a, v, n, secs = run_method(root, sequences, name.replace("/", "_"), cfg, estimator,
+                                       out_dir)
+            fps, spread = (n / secs, (n / secs, n / secs))
+            if args.repeats > 0:
+                fps, spread = time_method(root, sequences[0], mode, cfg, estimator, args.repeats)
+            rows.append({"method": name, "amodal": a, "visible": v, "fps": fps,
+                         "fps_range": spread, "frames": n})
+            print(f"  {name}: miss {a['miss_pct']:.2f}%  mIoU {a['miou']:.3f}  "
+                  f"visible mIoU {v['miou']:.3f}  {fps:.2f} frames/s", flush=True)
+    print("\n| Method | % Miss | mIoU | mIoU (misses = 0) | visible mIoU | unmatched preds "
+          "| frames/s (median, min-max) |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    for r in rows:
+        a = r["amodal"]
+        print(f"| {r['method']} | {a['miss_pct']:.2f} | {a['miou']:.3f} | "
+              f"{a['miou_with_misses']:.3f} | {r['visible']['miou']:.3f} | "
+              f"{a['unmatched_predictions']} | {r['fps']:.2f} ({r['fps_range'][0]:.2f}-"
+              f"{r['fps_range'][1]:.2f}) |")
+    instances = rows[0]["amodal"]["n"] if rows else 0
+    print(f"\n{instances} reference instances, {rows[0]['frames'] if rows else 0} frames; {note}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "results.json").write_text(json.dumps(
+        {"scenes": str(root), "note": note, "order": args.order, "rows": rows}, indent=2))
+    print(f"labels and results.json in {out_dir}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
