@@ -32,9 +32,9 @@ SMALL = GenerateConfig("small", n_vehicles=3, n_val_vehicles=1, tracks_per_vehic
 
 def _arrays_equal(a: TrackDataset, b: TrackDataset) -> None:
     assert a.track_ids == b.track_ids
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=False):
         assert len(x) == len(y)
-        for p, q in zip(x.points, y.points):
+        for p, q in zip(x.points, y.points, strict=False):
             np.testing.assert_array_equal(p, q)
         np.testing.assert_array_equal(x.poses, y.poses)
         np.testing.assert_array_equal(x.complete, y.complete)
@@ -86,7 +86,7 @@ def test_points_lie_on_the_vehicle_surface(small):
     n_points = 0
     for tr in TrackDataset(small):
         tree = cKDTree(tr.complete)
-        for p, pose in zip(tr.points, tr.poses):
+        for p, pose in zip(tr.points, tr.poses, strict=False):
             if not len(p):
                 continue
             n_points += len(p)
@@ -198,7 +198,7 @@ def test_realistic_options_block_but_never_add_points(tmp_path):
     n_occ = 0
     for tr in TrackDataset(tmp_path / "r"):
         n_occ += len(tr.meta["occluders"])
-        for p, pose in zip(tr.points, tr.poses):
+        for p, pose in zip(tr.points, tr.poses, strict=False):
             # target returns only: inside the target's box (+ noise margin), above the ground
             local = sensor_to_canonical(p, pose)
             assert np.all(np.abs(local) <= tr.size / 2 + 0.1)

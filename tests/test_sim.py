@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from seqshape.errors import ConfigError, DataError
-from seqshape.sim import raycast, trajectories as tj
+from seqshape.sim import raycast
+from seqshape.sim import trajectories as tj
 from seqshape.sim.sensors import LidarConfig, get_sensor, ray_directions
 
 
@@ -127,7 +128,7 @@ def test_track_batch_equals_per_frame(car):
     cfg = get_sensor("hdl32").without_noise()
     poses = np.array([[8.0, 3.0, -1.0, 0.1], [12.0, -5.0, -1.0, 1.0], [20.0, 20.0, -1.0, 2.0]])
     batch = raycast.scan_track(car, poses, cfg, np.random.default_rng(0))
-    for p, pts in zip(poses, batch):
+    for p, pts in zip(poses, batch, strict=False):
         np.testing.assert_array_equal(
             pts, raycast.scan_vehicle(car, p, cfg, np.random.default_rng(0)))
 

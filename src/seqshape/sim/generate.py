@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from seqshape.data.dataset import MANIFEST, manifest_entry, write_manifest
-from seqshape.data.track import Track, load_track, save_track
+from seqshape.data.track import Track, load_track
 from seqshape.errors import ConfigError, DataError
 from seqshape.sim import _worker as _tracks
 

@@ -90,7 +90,8 @@ def _direction_table(cfg: LidarConfig) -> np.ndarray:
 
 
 def _windows(bounds: np.ndarray, poses: np.ndarray, cfg: LidarConfig):
-    """Per frame: channel mask ``(T, C)`` and azimuth index range ``k0, k1`` ``(T,)``.
+    """Per frame: channel range ``c0:c1`` in ascending-elevation order and azimuth indices
+    ``k0..k1`` (all ``(T,)`` int64).
 
     The window covers the posed, margin-grown bounding box exactly in elevation (a
     conservative bound from the nearest and farthest footprint distances) and in azimuth (the
@@ -116,8 +117,9 @@ def _windows(bounds: np.ndarray, poses: np.ndarray, cfg: LidarConfig):
     e_lo = np.where(zlo < 0, np.arctan2(zlo, rmin_s), np.arctan2(zlo, rmax))
     e_hi[inside & (zhi > 0)] = np.pi / 2
     e_lo[inside & (zlo < 0)] = -np.pi / 2
-    elev = cfg.elevations_rad
-    chan = (elev[None, :] >= e_lo[:, None] - 1e-6) & (elev[None, :] <= e_hi[:, None] + 1e-6)
+    elev = np.sort(cfg.elevations_rad)
+    c0 = np.searchsorted(elev, e_lo - 1e-6, side="left")
+    c1 = np.searchsorted(elev, e_hi + 1e-6, side="right")
     centre = np.arctan2(poses[:, 1], poses[:, 0])
     rel = (np.arctan2(py, px) - centre[:, None] + np.pi) % (2 * np.pi) - np.pi
     step = np.deg2rad(cfg.azimuth_step_deg)
@@ -128,42 +130,46 @@ def _windows(bounds: np.ndarray, poses: np.ndarray, cfg: LidarConfig):
     k1 = np.minimum(k1, k0 + cfg.n_azimuths - 1)
     k0[inside] = 0
     k1[inside] = cfg.n_azimuths - 1
-    return chan, k0, k1
+    return c0, c1, k0, k1
+
+
+@lru_cache(maxsize=8)
+def _sorted_table(cfg: LidarConfig) -> np.ndarray:
+    """:func:`_direction_table` with the channels in ascending elevation."""
+    return _direction_table(cfg)[np.argsort(cfg.elevations_rad, kind="stable")]
 
 
 def track_rays(bounds: np.ndarray, poses: np.ndarray, cfg: LidarConfig):
     """The rays of every frame that can hit a box ``bounds`` (canonical) placed at ``poses``.
 
-    Returns ``dirs`` ``(R, 3)`` unit directions in the sensor frame (frame-major) and
-    ``frame`` ``(R,)`` int64, the frame index of each ray.
+    Returns ``dirs`` ``(R, 3)`` unit directions in the sensor frame and ``frame`` ``(R,)``
+    int64, the frame index of each ray. Rays are frame-major, then by ascending channel
+    elevation, then by azimuth (counter-clockwise).
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
-    table = _direction_table(cfg)
-    chan, k0, k1 = _windows(bounds, poses, cfg)
-    n_az = cfg.n_azimuths
-    parts, counts = [], np.zeros(len(poses), dtype=np.int64)
-    for t in range(len(poses)):
-        ch = np.flatnonzero(chan[t])
-        if len(ch) == 0 or k1[t] < k0[t]:
-            continue
-        ks = np.arange(k0[t], k1[t] + 1) % n_az
-        d = table[ch[:, None], ks[None, :]].reshape(-1, 3)
-        parts.append(d)
-        counts[t] = len(d)
-    if not parts:
-        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
-    return np.concatenate(parts), np.repeat(np.arange(len(poses)), counts)
+    c0, c1, k0, k1 = _windows(bounds, poses, cfg)
+    n_ch = np.maximum(c1 - c0, 0)
+    n_az = np.maximum(k1 - k0 + 1, 0)
+    count = n_ch * n_az
+    frame = np.repeat(np.arange(len(poses)), count)
+    local = np.arange(len(frame)) - np.repeat(np.cumsum(count) - count, count)
+    width = n_az[frame]
+    ch = c0[frame] + local // np.maximum(width, 1)
+    k = (k0[frame] + local % np.maximum(width, 1)) % cfg.n_azimuths
+    return _sorted_table(cfg)[ch, k], frame
 
 
 def _to_canonical(dirs: np.ndarray, frame: np.ndarray, poses: np.ndarray):
     """Ray origins (the sensor) and directions mapped into a vehicle's canonical frames."""
-    yaw = poses[frame, 3]
-    c, s = np.cos(yaw), np.sin(yaw)
-    t = -poses[frame, :3]
-    origins = np.stack([c * t[:, 0] + s * t[:, 1], -s * t[:, 0] + c * t[:, 1], t[:, 2]], 1)
-    d = np.stack([c * dirs[:, 0] + s * dirs[:, 1], -s * dirs[:, 0] + c * dirs[:, 1],
-                  dirs[:, 2]], 1)
-    return origins, d
+    c_f, s_f = np.cos(poses[:, 3]), np.sin(poses[:, 3])
+    t = -poses[:, :3]
+    o_f = np.stack([c_f * t[:, 0] + s_f * t[:, 1], -s_f * t[:, 0] + c_f * t[:, 1], t[:, 2]], 1)
+    c, s = c_f[frame], s_f[frame]
+    d = np.empty_like(dirs)
+    d[:, 0] = c * dirs[:, 0] + s * dirs[:, 1]
+    d[:, 1] = -s * dirs[:, 0] + c * dirs[:, 1]
+    d[:, 2] = dirs[:, 2]
+    return o_f[frame], d
 
 
 def _occluded(dirs, frame, rng, cfg: LidarConfig, occluders, ground: bool) -> np.ndarray:

@@ -307,7 +307,7 @@ def read_trajectory_csv(path: str | Path) -> Trajectory:
         except ValueError:
             raise DataError(path, f"not a number in {[row[c] for c in cols]}",
                             line=lineno) from None
-        bad = [n for n, v in zip(_COLUMNS, vals) if not math.isfinite(v)]
+        bad = [n for n, v in zip(_COLUMNS, vals, strict=False) if not math.isfinite(v)]
         if bad:
             raise DataError(path, f"non-finite value in column(s) {bad}", line=lineno)
         if values and vals[0] <= values[-1][1][0]:
