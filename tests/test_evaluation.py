@@ -263,3 +263,30 @@ def test_evaluate_cli_end_to_end(dataset, tmp_path):
     rc = main(["evaluate", "--data", str(dataset.path), "--checkpoint", str(base),
                "--out", str(out), "--workers", "0"])
     assert rc == 1
+
+
+def test_demo_end_to_end_with_untrained_models(tmp_path):
+    pytest.importorskip("seqshape.model.estimator")
+    pytest.importorskip("seqshape.sim.generate")
+    from seqshape.cli import main
+    from seqshape.scripts import demo
+
+    seq = _untrained_checkpoint(tmp_path / "seq.pt", "sequential")
+    base = _untrained_checkpoint(tmp_path / "base.pt", "baseline")
+    out = tmp_path / "demo"
+    extra = []
+    demo.STEPS.append(demo.DemoStep("extra", "an appended step",
+                                    lambda ctx: extra.append(ctx.data) or ctx.sections.append(
+                                        demo.Section("Extra", "appended `step`\n"))))
+    try:
+        rc = main(["demo", "--out", str(out), "--checkpoint", str(seq), "--baseline", str(base),
+                   "--max-tracks", "2", "--emd-every", "4", "--workers", "1"])
+    finally:
+        demo.STEPS.pop()
+    assert rc == 0 and extra == [out / "data"]
+    report = (out / "report.md").read_text()
+    assert "| sequential (ours) |" in report and "## Extra" in report
+    index = (out / "index.html").read_text()
+    assert "<table>" in index and "<code>step</code>" in index
+    for rel in ("eval/errors_vs_detections.png", "eval/track_view.html", "eval/metrics.json"):
+        assert rel in index and (out / rel).is_file()
