@@ -52,6 +52,8 @@ class LabelConfig:
     instances: COCO instance masks for sc-seg (default ``ROOT/instances_2d/SSSS.json``).
     min_points: sc-seg instances with fewer segmented points are dropped.
     gate: sc-seg association gate (m).
+    min_visible_area: instances whose visible mask is smaller (pixels) are not labelled
+        (KINS annotates what can be seen; the scene generator uses the same 20 px rule).
     """
 
     mode: str = "sc-gt"
@@ -63,6 +65,7 @@ class LabelConfig:
     instances: str | None = None
     min_points: int = 5
     gate: float = 3.0
+    min_visible_area: int = 20
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -164,6 +167,7 @@ def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig) 
         items = by_frame.get(frame, {})
         insts = frame_masks({tid: c for tid, (c, _) in items.items()}, calib, size,
                             alpha=cfg.alpha, order=cfg.order)
+        insts = [m for m in insts if m.visible.sum() >= cfg.min_visible_area]
         masks[frame] = insts
         oco, ico = occlusion_order([m.order for m in insts], [m.amodal for m in insts])
         for m, o, i in zip(insts, oco, ico, strict=True):
