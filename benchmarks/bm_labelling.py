@@ -31,9 +31,15 @@ from pathlib import Path
 os.environ.setdefault("SEQSHAPE_PROGRESS", "0")
 
 from seqshape.amodal.evaluate import evaluate_files, summarise  # noqa: E402
-from seqshape.amodal.labeler import (LabelConfig, clouds_by_frame, gt_track_inputs,  # noqa: E402
-                                     label_sequence, load_estimator, render_labels,
-                                     write_labels)
+from seqshape.amodal.labeler import (  # noqa: E402
+    LabelConfig,
+    clouds_by_frame,
+    gt_track_inputs,
+    label_sequence,
+    load_estimator,
+    render_labels,
+    write_labels,
+)
 from seqshape.amodal.refine import REFINE_MODES  # noqa: E402
 from seqshape.data.kitti import KittiTrackingSequence  # noqa: E402
 

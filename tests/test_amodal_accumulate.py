@@ -4,8 +4,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from seqshape.amodal.accumulate import (accumulate_canonical, export_tracks, mirror_y,
-                                        place_in_frames, voxel_downsample)
+from seqshape.amodal.accumulate import (
+    accumulate_canonical,
+    export_tracks,
+    mirror_y,
+    place_in_frames,
+    voxel_downsample,
+)
 from seqshape.data.track import Track
 from seqshape.geometry import canonical_to_sensor
 
@@ -66,7 +71,7 @@ def test_place_in_frames_round_trip():
     tr = left_side_track()
     canon = accumulate_canonical(tr)
     placed = place_in_frames(canon, tr.poses)
-    for pose, cloud, pts in zip(tr.poses, placed, tr.points, strict=True):
+    for cloud, pts in zip(placed, tr.points, strict=True):
         assert cloud.shape == canon.shape and cloud.dtype == np.float32
         assert cKDTree(cloud).query(pts)[0].max() < 0.06  # observed points lie on it
     nan = place_in_frames(canon, np.full((1, 4), np.nan))

@@ -3,8 +3,13 @@
 import numpy as np
 import pytest
 
-from seqshape.amodal.evaluate import (breakdown, evaluate_image, mask_iou_matrix, match_masks,
-                                      summarise)
+from seqshape.amodal.evaluate import (
+    breakdown,
+    evaluate_image,
+    mask_iou_matrix,
+    match_masks,
+    summarise,
+)
 
 
 def box(y0, x0, h, w, size=(100, 100)):

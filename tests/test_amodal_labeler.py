@@ -10,14 +10,25 @@ import numpy as np
 import pytest
 
 from seqshape.amodal.evaluate import evaluate_files, summarise
-from seqshape.amodal.kins import (coco_annotation, image_entry, kins_annotation,
-                                  occlusion_order, read_kins, write_coco_instances, write_kins)
+from seqshape.amodal.kins import (
+    coco_annotation,
+    image_entry,
+    kins_annotation,
+    occlusion_order,
+    read_kins,
+    write_coco_instances,
+    write_kins,
+)
 from seqshape.amodal.labeler import LabelConfig, label_sequence, write_labels, write_overlays
 from seqshape.camera import kitti_default_calib, project_points, write_calib
-from seqshape.data.kitti import KittiLabel, pose_to_label_fields, write_labels as write_kitti
-from seqshape.data.kitti import KittiTrackingSequence, write_velodyne
-from seqshape.geometry import (box_corners, canonical_to_sensor, points_in_box,
-                               sensor_to_canonical)
+from seqshape.data.kitti import (
+    KittiLabel,
+    KittiTrackingSequence,
+    pose_to_label_fields,
+    write_velodyne,
+)
+from seqshape.data.kitti import write_labels as write_kitti
+from seqshape.geometry import box_corners, canonical_to_sensor, points_in_box, sensor_to_canonical
 
 SIZE = np.array([4.4, 1.8, 1.5])
 H = 1.73

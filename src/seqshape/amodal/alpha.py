@@ -36,8 +36,22 @@ log = logging.getLogger(__name__)
 NN_FACTOR = 3.0
 TRI_FACTOR = 3.0
 MIN_RADIUS_PX = 1.5
+GRID_PX = 0.25  # projected points are snapped to this lattice (px) before triangulating
 _SHIFT = 4  # cv2 fixed-point bits: vertices at 1/16 px
 _FAR = 4.0  # coordinates clipped to [-_FAR * size, (1 + _FAR) * size] before rasterising
+
+
+def _dedup(uv: np.ndarray, grid: float) -> np.ndarray:
+    """Points snapped to a ``grid``-pixel lattice, one per occupied cell (``grid`` 0: exact)."""
+    if len(uv) == 0:
+        return uv
+    if grid <= 0:
+        return np.unique(uv, axis=0)
+    q = np.round(uv / grid).astype(np.int64)
+    q -= q.min(0)
+    key = q[:, 0] * (int(q[:, 1].max()) + 1) + q[:, 1]
+    _, first = np.unique(key, return_index=True)
+    return q[first].astype(np.float64) * grid + np.round(uv.min(0) / grid) * grid
 
 
 def auto_alpha_radius(uv: np.ndarray, radii: np.ndarray | None = None) -> float:
@@ -45,7 +59,7 @@ def auto_alpha_radius(uv: np.ndarray, radii: np.ndarray | None = None) -> float:
 
     ``radii`` are the circumradii of the points' Delaunay triangles when already known.
     """
-    uv = np.unique(np.asarray(uv, dtype=np.float64).reshape(-1, 2), axis=0)
+    uv = _dedup(np.asarray(uv, dtype=np.float64).reshape(-1, 2), 0.0)
     if len(uv) < 2:
         return MIN_RADIUS_PX
     d, _ = cKDTree(uv).query(uv, k=2)  # (N, 2); column 0 is the point itself
@@ -92,7 +106,8 @@ def _draw_degenerate(mask: np.ndarray, uv: np.ndarray, image_size) -> None:
              thickness=1, lineType=cv2.LINE_8, shift=_SHIFT)
 
 
-def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None) -> np.ndarray:
+def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None,
+                     grid: float = GRID_PX) -> np.ndarray:
     """Rasterise the filled alpha shape of the points ``uv``.
 
     Args:
@@ -102,6 +117,8 @@ def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None
         alpha: keep Delaunay triangles with circumradius ``< 1 / alpha`` (pixels); ``None`` picks
             it from the point spacing (:func:`auto_alpha_radius`); ``0`` keeps every triangle
             (the convex hull).
+        grid: the points are first snapped to a lattice of this many pixels, one point per
+            cell (dense clouds project many points per pixel; 0 keeps them all).
 
     Returns:
         ``(h, w)`` bool mask. Fewer than 3 distinct points, or collinear points, give the
@@ -113,7 +130,7 @@ def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None
     mask = np.zeros((h, w), dtype=np.uint8)
     if alpha is not None and alpha < 0:
         raise ValueError(f"alpha must be >= 0, got {alpha}")
-    pts = np.unique(uv, axis=0)
+    pts = _dedup(uv, grid)
     if len(pts) < 3:
         _draw_degenerate(mask, pts, (h, w))
         return mask.astype(bool)

@@ -35,8 +35,13 @@ def amodal_demo_step(work_dir, checkpoint: str | None = "pretrained", seed: int 
     fails the sc-* modes are skipped and the report says why).
     """
     from seqshape.amodal.evaluate import evaluate_files, markdown_table, summarise
-    from seqshape.amodal.labeler import (LabelConfig, label_sequence, load_estimator,
-                                         write_labels, write_overlays)
+    from seqshape.amodal.labeler import (
+        LabelConfig,
+        label_sequence,
+        load_estimator,
+        write_labels,
+        write_overlays,
+    )
     from seqshape.data.kitti import KittiTrackingSequence
     from seqshape.errors import SeqshapeError
     from seqshape.sim.scene_writer import generate_scenes, scene_config
@@ -68,3 +73,21 @@ def amodal_demo_step(work_dir, checkpoint: str | None = "pretrained", seed: int 
           + markdown_table(rows, title="Amodal mask labels vs exact ground truth")
           + ("\n" + note + "\n" if note else ""))
     return DemoStepResult(TITLE, md, images, rows)
+
+
+def step_amodal(ctx) -> None:
+    """``seqshape demo`` step: :func:`amodal_demo_step` in ``DIR/amodal``, added as a Section.
+
+    Uses the demo's loaded sequential estimator (``ctx.estimators["sequential"]``) when there
+    is one.
+    """
+    from seqshape.scripts.demo import Section
+
+    work = ctx.out / "amodal"
+    res = amodal_demo_step(work, checkpoint=getattr(ctx.args, "checkpoint", "pretrained"),
+                           seed=getattr(ctx.args, "seed", 0),
+                           estimator=ctx.estimators.get("sequential"))
+    ctx.state["amodal"] = res.metrics
+    images = [(f"{p.parent.name}: frame {p.stem.split('_')[-1]}",
+               str(p.relative_to(ctx.out))) for p in res.images]
+    ctx.sections.append(Section(res.title, res.markdown, images=images))

@@ -219,3 +219,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"report: {ctx.out / 'report.md'} and {ctx.out / 'index.html'} "
           f"({time.perf_counter() - t0:.0f} s)")
     return 0
+
+from seqshape.amodal.demo_step import step_amodal  # noqa: E402  (amodal labelling, docs/amodal.md)
+
+STEPS.append(DemoStep("amodal", "label amodal masks on a kitti-tiny scene", step_amodal))

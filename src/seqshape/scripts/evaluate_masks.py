@@ -50,8 +50,14 @@ def resolve_pairs(preds: list[Path], gts: list[Path]) -> list[tuple[Path, Path]]
 
 
 def run(args: argparse.Namespace) -> int:
-    from seqshape.amodal.evaluate import (breakdown, breakdown_table, evaluate_files,
-                                          markdown_table, results_to_records, summarise)
+    from seqshape.amodal.evaluate import (
+        breakdown,
+        breakdown_table,
+        evaluate_files,
+        markdown_table,
+        results_to_records,
+        summarise,
+    )
 
     pairs = resolve_pairs(args.pred, args.gt)
     results, unmatched = evaluate_files(pairs, args.categories)

@@ -38,8 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from seqshape.amodal.labeler import (LabelConfig, label_sequence, write_labels,
-                                         write_overlays)
+    from seqshape.amodal.labeler import LabelConfig, label_sequence, write_labels, write_overlays
     from seqshape.data.kitti import KittiTrackingSequence, extract_tracks
     from seqshape.errors import ConfigError
 
