@@ -55,10 +55,20 @@ def _detection_edges(n_det: np.ndarray, max_bins: int) -> np.ndarray:
     return np.arange(1, top + width + 1, width, dtype=np.float64)
 
 
+def _floor_cm(result: EvalResult) -> float | None:
+    from seqshape.evaluation.report import floor_summary
+
+    methods = result.methods
+    ref = "sequential" if "sequential" in methods else methods[0]
+    return floor_summary(result, ref)["cd_floor_cm"]
+
+
 def _plot_against(result: EvalResult, x_col: str, edges: np.ndarray, xlabel: str, title: str,
                   path: str | Path, min_count: int) -> Path:
+    floor_cm = _floor_cm(result)
     plt = _pyplot()
-    fig, axes = plt.subplots(1, len(METRICS), figsize=(4.2 * len(METRICS), 3.6))
+    fig, axes = plt.subplots(2, 2, figsize=(10, 7.2))
+    axes = axes.ravel()
     for ax, (key, (col, scale)) in zip(axes, METRICS.items()):
         for m in result.methods:
             rec = result.of(m)
@@ -69,15 +79,19 @@ def _plot_against(result: EvalResult, x_col: str, edges: np.ndarray, xlabel: str
             color = COLORS.get(m)
             ax.plot(c, mean, "-o", ms=3, color=color, label=m)
             ax.fill_between(c, q1, q3, color=color, alpha=0.25, linewidth=0)
+        if key == "cd_cm" and floor_cm is not None:
+            ax.axhline(floor_cm, color="gray", ls="--", lw=1, label="CD floor")
         ax.set_xlabel(xlabel)
         ax.set_ylabel(LABELS[key])
         ax.grid(alpha=0.3)
         ax.set_ylim(bottom=0)
         if not ax.lines:
-            ax.text(0.5, 0.5, f"fewer than {min_count} frames per bin", ha="center",
+            computed = np.isfinite(result.records[col]).any()
+            msg = f"fewer than {min_count} frames per bin" if computed else "not computed"
+            ax.text(0.5, 0.5, msg, ha="center",
                     va="center", transform=ax.transAxes, fontsize=8, color="gray")
     if axes[0].lines:
-        axes[0].legend(loc="upper right", fontsize=8)
+        axes[0].legend(loc="best", fontsize=8)
     fig.suptitle(f"{title} (line: mean, band: 25-75th percentile)", fontsize=10)
     fig.tight_layout()
     path = Path(path)
