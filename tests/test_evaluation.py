@@ -265,7 +265,9 @@ def test_evaluate_cli_end_to_end(dataset, tmp_path):
     assert rc == 1
 
 
+@pytest.mark.slow
 def test_demo_end_to_end_with_untrained_models(tmp_path):
+    """Generation (tiny preset) + evaluation + report: 7 s on an idle 2-core machine."""
     pytest.importorskip("seqshape.model.estimator")
     pytest.importorskip("seqshape.sim.generate")
     from seqshape.cli import main

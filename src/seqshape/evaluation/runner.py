@@ -278,7 +278,7 @@ def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
         spans.append(span)
     if not tracks:
         raise SeqshapeError("no track with detections to evaluate")
-    col = _Collector(workers)
+    col = _Collector(workers if emd_every > 0 else 0)
     k_of: dict[str, int] = {}
     total = sum(b - a for a, b in spans) * len(estimators)
     bar = progress(total=total, desc="evaluate", unit="frame")
