@@ -19,11 +19,11 @@ from seqshape.evaluation.metrics import chamfer_distance, earth_movers_distance
 def box_surface(n: int, seed: int, size=(4.5, 1.8, 1.5)) -> np.ndarray:
     rng = np.random.default_rng(seed)
     size = np.asarray(size, dtype=np.float64)
-    l, w, h = size
-    areas = np.array([w * h, w * h, l * h, l * h, l * w, l * w])
+    ln, w, h = size
+    areas = np.array([w * h, w * h, ln * h, ln * h, ln * w, ln * w])
     face = rng.choice(6, n, p=areas / areas.sum())
     u = rng.uniform(-0.5, 0.5, (n, 3)) * size
-    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3)):
+    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3, strict=True)):
         u[face == i, axis] = sign * size[axis] / 2
     return u.astype(np.float32)
 
@@ -46,8 +46,8 @@ def main() -> None:
     for n in (1024, 2048):
         a = box_surface(n, 1)
         b = box_surface(n, 2) + np.float32(0.05)  # a slightly offset second sampling
-        for name, fn in (("chamfer", lambda: chamfer_distance(a, b)),
-                         ("emd", lambda: earth_movers_distance(a, b))):
+        for name, fn in (("chamfer", lambda a=a, b=b: chamfer_distance(a, b)),
+                         ("emd", lambda a=a, b=b: earth_movers_distance(a, b))):
             med, lo, hi = timeit(fn, args.repeats)
             rows.append((name, n, med, lo, hi, fn()))
     print(f"{'metric':<8} {'points':>6} {'median ms':>10} {'min ms':>8} {'max ms':>8} "

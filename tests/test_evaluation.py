@@ -19,11 +19,11 @@ SIZE = (4.5, 1.8, 1.5)
 def box_surface(n: int, seed: int, size=SIZE) -> np.ndarray:
     rng = np.random.default_rng(seed)
     size = np.asarray(size, dtype=np.float64)
-    l, w, h = size
-    areas = np.array([w * h, w * h, l * h, l * h, l * w, l * w])
+    ln, w, h = size
+    areas = np.array([w * h, w * h, ln * h, ln * h, ln * w, ln * w])
     face = rng.choice(6, n, p=areas / areas.sum())
     u = rng.uniform(-0.5, 0.5, (n, 3)) * size
-    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3)):
+    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3, strict=True)):
         u[face == i, axis] = sign * size[axis] / 2
     return u.astype(np.float32)
 
@@ -75,7 +75,7 @@ class OracleEstimator:
     def step(self, track_ids, point_lists):
         self.calls.append(len(track_ids))
         out = []
-        for tid, pts in zip(track_ids, point_lists):
+        for tid, pts in zip(track_ids, point_lists, strict=True):
             tr = self.tracks[tid]
             t = self.frame.get(tid, detection_span(tr)[0])
             self.frame[tid] = t + 1

@@ -46,7 +46,7 @@ def binned_stats(x: np.ndarray, y: np.ndarray, edges: np.ndarray, min_count: int
             rows.append(((edges[i] + edges[i + 1]) / 2, v.mean(), *np.percentile(v, [25, 75])))
     if not rows:
         return tuple(np.zeros(0) for _ in range(4))
-    return tuple(np.array(c) for c in zip(*rows))
+    return tuple(np.array(c) for c in zip(*rows, strict=True))
 
 
 def _detection_edges(n_det: np.ndarray, max_bins: int) -> np.ndarray:
@@ -69,7 +69,7 @@ def _plot_against(result: EvalResult, x_col: str, edges: np.ndarray, xlabel: str
     plt = _pyplot()
     fig, axes = plt.subplots(2, 2, figsize=(10, 7.2))
     axes = axes.ravel()
-    for ax, (key, (col, scale)) in zip(axes, METRICS.items()):
+    for ax, (key, (col, scale)) in zip(axes, METRICS.items(), strict=True):
         for m in result.methods:
             rec = result.of(m)
             c, mean, q1, q3 = binned_stats(rec[x_col].astype(np.float64), rec[col] * scale,

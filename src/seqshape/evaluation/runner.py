@@ -33,6 +33,7 @@ import numpy as np
 
 from seqshape._progress import progress
 from seqshape.data import Track
+from seqshape.errors import ConfigError, SeqshapeError
 from seqshape.evaluation.metrics import (
     cd_floor,
     chamfer_distance,
@@ -41,7 +42,6 @@ from seqshape.evaluation.metrics import (
     stable_seed,
     subsample_pair,
 )
-from seqshape.errors import ConfigError, SeqshapeError
 
 log = logging.getLogger(__name__)
 
@@ -167,7 +167,7 @@ class _Collector:
         done = progress(total=len(self.pending), desc="EMD", unit="task")
         for idx, job in self.pending:
             values = job.result() if isinstance(job, Future) else job
-            for i, v in zip(idx, values):
+            for i, v in zip(idx, values, strict=True):
                 emd[i] = v
             done.update(1)
         done.close()
@@ -217,7 +217,7 @@ def _run_chunk(col: _Collector, name: str, est: EstimatorLike, tracks: list[Trac
         if len(estimates) != len(active):
             raise SeqshapeError(f"estimator {name!r} returned {len(estimates)} estimates for "
                                 f"{len(active)} tracks")
-        for j, e in zip(active, estimates):
+        for j, e in zip(active, estimates, strict=True):
             t = spans[j][0] + i
             n_det[j] += int(len(tracks[j].points[t]) > 0)
             k_pred = k_pred or len(e.complete)
