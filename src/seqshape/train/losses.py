@@ -24,11 +24,13 @@ def _valid_mask(lengths: torch.Tensor | None, b: int, n: int, device) -> torch.T
 def _argmin_sq(a: torch.Tensor, b: torch.Tensor, b_mask: torch.Tensor) -> torch.Tensor:
     """For each row of ``a`` (b, P, 3) the index of the nearest valid row of ``b`` (b, Q, 3).
 
-    Uses ``|b|^2 - 2 a.b`` (the ``|a|^2`` term does not change the argmin) in one batched
-    matrix product; invalid rows of ``b`` get +inf.
+    ``|b|^2 - 2 a.b`` (the ``|a|^2`` term does not change the argmin) as one batched product
+    of 4-vectors ``[a, 1] . [-2 b, |b|^2]``; invalid rows of ``b`` get ``|b|^2 = +inf``.
     """
-    bias = (b * b).sum(-1).masked_fill(~b_mask, math.inf).unsqueeze(1)  # (b, 1, Q)
-    return torch.baddbmm(bias, a, b.transpose(1, 2), alpha=-2.0).min(dim=2).indices
+    sq = (b * b).sum(-1, keepdim=True).masked_fill(~b_mask.unsqueeze(-1), math.inf)
+    a4 = torch.cat([a, torch.ones_like(a[..., :1])], -1)
+    b4 = torch.cat([-2.0 * b, sq], -1)
+    return torch.bmm(a4, b4.transpose(1, 2)).min(dim=2).indices
 
 
 @torch.no_grad()
