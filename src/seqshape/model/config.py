@@ -33,6 +33,10 @@ class ModelConfig:
     """Hidden widths of the pose MLP; its output is (x, y, z, cos yaw, sin yaw)."""
     num_complete: int = 1024
     """K: number of points of the estimated complete shape."""
+    view_input: bool = False
+    """Extension (not in the paper): append the unit direction from the sensor to the frame
+    mean to every demeaned point (encoder input 6 instead of 3), restoring the viewpoint
+    that demeaning removes (which side of the vehicle faces the sensor)."""
 
     def __post_init__(self):
         for name in ("encoder1", "encoder2", "shape_decoder", "pose_decoder"):

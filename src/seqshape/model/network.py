@@ -50,12 +50,13 @@ def masked_max(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 class PointEncoder(nn.Module):
     """PCN encoder: shared MLP -> max-pool g -> [per-point, g] -> shared MLP -> max-pool.
 
-    ``forward(points (F, N, 3), mask (F, N) bool) -> (F, encoder2[-1])``.
+    ``forward(points (F, N, C), mask (F, N) bool) -> (F, encoder2[-1])``, C = 3 (demeaned
+    xyz) or 6 (plus the viewing direction, ``ModelConfig.view_input``).
     """
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
-        self.mlp1 = mlp([3, *cfg.encoder1], point_wise=True)
+        self.mlp1 = mlp([6 if cfg.view_input else 3, *cfg.encoder1], point_wise=True)
         self.mlp2 = mlp([2 * cfg.encoder1[-1], *cfg.encoder2], point_wise=True)
 
     def forward(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -114,7 +115,11 @@ class ShapePoseNet(nn.Module):
         mask = torch.arange(n, device=points.device) < lengths.unsqueeze(-1)  # (B, W, N)
         m = mask.unsqueeze(-1).to(points.dtype)
         frame_mean = (points * m).sum(2) / lengths.clamp(min=1).unsqueeze(-1).to(points.dtype)
-        feats = self.encoder((points - frame_mean.unsqueeze(2)).reshape(b * w, n, 3),
+        x = points - frame_mean.unsqueeze(2)
+        if self.cfg.view_input:
+            view = frame_mean / frame_mean.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+            x = torch.cat([x, view.unsqueeze(2).expand(-1, -1, n, -1)], dim=-1)
+        feats = self.encoder(x.reshape(b * w, n, x.shape[-1]),
                              mask.reshape(b * w, n)).reshape(b, w, -1)
         h = points.new_zeros(b, self.cfg.hidden) if hidden is None else hidden
         mean = points.new_zeros(b, 3) if last_mean is None else last_mean
