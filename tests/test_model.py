@@ -109,3 +109,23 @@ def test_presets_and_config_round_trip():
         ModelConfig(encoder1=())
     with pytest.raises(ConfigError):
         ModelConfig.from_dict({"bogus": 1})
+
+
+def test_view_input_option():
+    """view_input appends the sensor-to-mean direction: a pure shift along the viewing
+    direction changes nothing but the offset; a shift across it changes the estimate."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    net = ShapePoseNet(dataclasses.replace(TINY, view_input=True)).eval()
+    assert net.encoder.mlp1[0].in_features == 6
+    pts = torch.randn(1, 2, 32, 3) * 0.5
+    pts = pts - pts.mean(2, keepdim=True) + torch.tensor([10.0, 0.0, 0.0])  # mean on +x
+    lengths = torch.full((1, 2), 32)
+    a = net(pts, lengths)
+    along = net(pts + torch.tensor([5.0, 0.0, 0.0]), lengths)
+    torch.testing.assert_close(along["complete"], a["complete"] + torch.tensor([5.0, 0, 0]),
+                               atol=1e-4, rtol=0)
+    across = net(pts + torch.tensor([0.0, 10.0, 0.0]), lengths)
+    assert not torch.allclose(across["complete"] - torch.tensor([0.0, 10.0, 0.0]),
+                              a["complete"], atol=1e-4)
