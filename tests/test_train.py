@@ -13,8 +13,8 @@ import sys
 import numpy as np
 import pytest
 import torch
-
 from _model_data import make_dataset
+
 from seqshape.data.windows import WindowDataset, batch_for_step, stream_indices
 from seqshape.errors import ConfigError
 from seqshape.model import Estimator

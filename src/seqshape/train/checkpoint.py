@@ -25,7 +25,7 @@ from seqshape.model.network import ShapePoseNet
 
 def rng_state() -> dict[str, Any]:
     """The torch, numpy (legacy global) and python RNG states, as weights-only-safe values."""
-    np_state = np.random.get_state(legacy=True)
+    np_state = np.random.get_state(legacy=True)  # noqa: NPY002 - the global state is saved on purpose
     py_state = random.getstate()
     return {"torch": torch.get_rng_state(),
             "numpy": {"key": torch.from_numpy(np_state[1].astype(np.int64)),
@@ -38,8 +38,9 @@ def set_rng_state(state: dict[str, Any]) -> None:
     """Inverse of :func:`rng_state`."""
     torch.set_rng_state(state["torch"])
     n = state["numpy"]
-    np.random.set_state(("MT19937", n["key"].numpy().astype(np.uint32), n["pos"],
-                         n["has_gauss"], n["cached_gaussian"]))
+    legacy = ("MT19937", n["key"].numpy().astype(np.uint32), n["pos"], n["has_gauss"],
+              n["cached_gaussian"])
+    np.random.set_state(legacy)  # noqa: NPY002
     p = state["python"]
     random.setstate((p[0], tuple(p[1]), p[2]))
 

@@ -78,7 +78,7 @@ class Trainer:
             log.warning("%s has no val split: validation is skipped", self.data)
             self.val_tracks = None
         torch.manual_seed(cfg.seed)
-        np.random.seed(cfg.seed % 2**32)
+        np.random.seed(cfg.seed % 2**32)  # noqa: NPY002 - seeds code that uses the global RNG
         random.seed(cfg.seed)
         self.model = ShapePoseNet(cfg.model_config(), recurrent=kind == "sequential")
         self.joint = JointLoss()
