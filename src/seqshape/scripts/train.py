@@ -39,6 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch threads per process")
     parser.add_argument("--val-every", type=int, default=None)
     parser.add_argument("--ckpt-every", type=int, default=None)
+    parser.add_argument("--model-set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="override a ModelConfig field of the preset, VALUE in JSON "
+                             "(repeatable), e.g. --model-set view_input=true "
+                             "--model-set num_complete=2048")
     parser.add_argument("--no-tensorboard", action="store_true")
 
 
@@ -79,7 +83,28 @@ def build_config(args: argparse.Namespace):
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     if args.no_tensorboard:
         cfg = dataclasses.replace(cfg, tensorboard=False)
+    if args.model_set:
+        cfg = dataclasses.replace(cfg, model_overrides={**cfg.model_overrides,
+                                                        **_model_sets(args.model_set)})
+        cfg.model_config()  # validate now
     return cfg
+
+
+def _model_sets(items: list[str]) -> dict:
+    import json
+
+    from seqshape.errors import ConfigError
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--model-set needs FIELD=VALUE, got {item!r}")
+        try:
+            out[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            raise ConfigError(f"--model-set {key}: {value!r} is not a JSON value") from None
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
