@@ -1,8 +1,8 @@
 """Network hyper-parameters: :class:`ModelConfig` and the named presets.
 
-``small`` is sized to train usefully on 2 CPU cores in about half an hour (and feeds the
-viewing direction to the encoder, ``view_input``); ``paper`` follows the PCN encoder widths
-(128-256 / 512-1024) and K = 2048 output points, for a GPU, with the paper's input.
+``small`` is sized to train usefully on 2 CPU cores in about half an hour; ``paper`` follows
+the PCN encoder widths (128-256 / 512-1024) and K = 2048 output points, for a GPU. Both use
+the paper's input (``view_input`` off).
 """
 
 from __future__ import annotations
@@ -70,9 +70,7 @@ class ModelConfig:
 
 
 MODEL_PRESETS: dict[str, ModelConfig] = {
-    # view_input on: with the ~35 min CPU budget it learns markedly faster (docs/model.md);
-    # ``--model-set view_input=false`` gives the paper's exact input.
-    "small": ModelConfig(view_input=True),
+    "small": ModelConfig(),
     "paper": ModelConfig(num_points=1024, encoder1=(128, 256), encoder2=(512, 1024),
                          hidden=1024, shape_decoder=(1024, 1024), pose_decoder=(512, 256),
                          num_complete=2048),
