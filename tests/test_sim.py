@@ -169,6 +169,95 @@ def test_intersector_cached(car):
     assert raycast.mesh_raycaster(_box()) is not raycast.mesh_raycaster(car)
 
 
+def test_raycaster_freed_with_its_mesh():
+    import gc
+
+    box = _box()
+    key = id(box)
+    rt = raycast.mesh_raycaster(box)
+    assert rt.first_faces([[-9.0, 0.0, 0.0]], [[1.0, 0.0, 0.0]])[0] >= 0
+    del rt
+    del box
+    gc.collect()
+    assert key not in raycast._CACHE
+
+
+def test_first_hits_distance_semantics():
+    """Embree's t is the ray parameter (distance for unit dirs); misses give face -1."""
+    rt = raycast.mesh_raycaster(_box())  # x in [-2, 2]
+    o = np.array([[-10.0, 0.0, 0.0], [-10.0, 0.0, 0.0], [-10.0, 5.0, 0.0], [-10.0, 0.3, 0.2]])
+    d = np.array([[1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    tri, t = rt.first_hits(o, d)
+    assert list(tri >= 0) == [True, True, False, True]
+    np.testing.assert_allclose(t[[0, 1, 3]], [8.0, 4.0, 8.0], atol=1e-5)
+    np.testing.assert_array_equal(rt.first_faces(o, d), tri)
+    unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+    hit, rng = rt.cast(o, unit)
+    assert list(hit) == [True, True, False, True]
+    np.testing.assert_allclose(rng[hit], 8.0, atol=1e-12)  # exact plane ranges
+    assert rt.first_faces(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
+
+
+def test_cast_matches_trimesh_locations(car):
+    """Random rays from around the car: same hits and ranges as trimesh's own first-hit path."""
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    o = rng.uniform(-1, 1, (n, 3)) * [12.0, 12.0, 1.0]
+    o[:, :2] += np.sign(o[:, :2]) * 3.0  # outside the car's footprint
+    target = rng.uniform(-1, 1, (n, 3)) * car.extents / 2
+    d = target - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    hit, r = raycast.mesh_raycaster(car).cast(o, d)
+    loc, ray_idx, _ = RayMeshIntersector(car).intersects_location(o, d, multiple_hits=False)
+    ref = np.full(n, np.inf)
+    ref[ray_idx] = np.linalg.norm(loc - o[ray_idx], axis=1)
+    both = hit & np.isfinite(ref)
+    assert both.sum() > n // 2
+    assert (hit != np.isfinite(ref)).sum() <= 2  # only rays through an edge may differ
+    np.testing.assert_allclose(r[both], ref[both], atol=1e-5)
+
+
+def test_track_rays_are_rotated_sensor_rays(car):
+    """Canonical float32 rays = the sensor's (channel, azimuth) directions rotated by -yaw,
+    origins = the sensor in the canonical frame; frame-major, ascending elevation, azimuth."""
+    from seqshape.geometry import sensor_to_canonical
+
+    cfg = get_sensor("vlp16")
+    poses = np.array([[9.0, 4.0, -1.0, 0.4], [-20.0, 0.5, -1.0, 3.0], [-6.0, -0.01, -1.0, -2.0]])
+    rt = raycast.mesh_raycaster(car)
+    rays = raycast.track_rays(rt.bounds, poses, cfg)
+    idx = np.arange(len(rays))
+    frame = rays.frames(idx)
+    assert np.all(np.diff(frame) >= 0) and set(frame) == {0, 1, 2}
+    table = ray_directions(cfg).reshape(len(cfg.elevations_deg), cfg.n_azimuths, 3)
+    table = table[np.argsort(cfg.elevations_deg)]
+    ch, k = rays.row_ch[rays.ray_row], rays.col_k[rays.ray_col]
+    canon, sensor = rays.exact_dirs(idx, cfg)
+    np.testing.assert_allclose(sensor, table[ch, k], atol=1e-12)
+    for f, pose in enumerate(poses):
+        m = frame == f
+        want = sensor_to_canonical(sensor[m], (0.0, 0.0, 0.0, pose[3]))
+        np.testing.assert_allclose(canon[m], want, atol=1e-12)
+        np.testing.assert_allclose(rays.dirs[m], want, atol=1e-6)
+        np.testing.assert_allclose(rays.origins[m], sensor_to_canonical(np.zeros((1, 3)), pose)
+                                   .repeat(m.sum(), 0), atol=1e-5)
+        order = ch[m] * cfg.n_azimuths + (k[m] - k[m][0]) % cfg.n_azimuths
+        assert np.all(np.diff(order) > 0)
+
+
+def test_track_with_empty_frames_first_middle_last(car):
+    cfg = get_sensor("vlp16").without_noise()
+    away, above = (150.0, 0.0, -1.0, 0.0), (8.0, 3.0, 30.0, 0.0)
+    seen = (8.0, 3.0, -1.1, 0.2)
+    out = raycast.scan_track(car, [away, seen, above, seen, away], cfg, np.random.default_rng(0))
+    assert [len(p) > 0 for p in out] == [False, True, False, True, False]
+    assert all(p.shape[1:] == (3,) and p.dtype == np.float32 for p in out)
+    np.testing.assert_array_equal(out[1], out[3])
+    assert raycast.scan_track(car, [away], cfg, np.random.default_rng(0))[0].shape == (0, 3)
+
+
 # ----------------------------------------------------------------------------- trajectories
 
 def test_track_length_distribution():

@@ -108,7 +108,7 @@ def cast_vehicle(mesh, pose, origin, dirs) -> tuple[np.ndarray, np.ndarray, np.n
     rot = yaw_to_rotmat(pose[3])
     o = np.broadcast_to((np.asarray(origin, dtype=np.float64) - pose[:3]) @ rot, dirs.shape)
     d = dirs @ rot
-    tri = rt.intersector.intersects_first(np.ascontiguousarray(o), np.ascontiguousarray(d))
+    tri = rt.first_faces(o, d).astype(np.int64)
     rng = np.full(len(d), np.inf)
     hit = np.flatnonzero(tri >= 0)
     if len(hit):
