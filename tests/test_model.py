@@ -129,3 +129,28 @@ def test_view_input_option():
     across = net(pts + torch.tensor([0.0, 10.0, 0.0]), lengths)
     assert not torch.allclose(across["complete"] - torch.tensor([0.0, 10.0, 0.0]),
                               a["complete"], atol=1e-4)
+
+
+def test_canonical_shape_frame_is_placed_by_the_predicted_pose():
+    torch.manual_seed(0)
+    cfg = ModelConfig(encoder1=(8, 16), encoder2=(16, 16), hidden=16, shape_decoder=(32,),
+                      pose_decoder=(16,), num_complete=20, shape_frame="canonical")
+    net = ShapePoseNet(cfg, recurrent=True).eval()
+    pts = torch.randn(2, 3, 30, 3) + torch.tensor([10.0, -4.0, 0.0])
+    out = net(pts, torch.full((2, 3), 30))
+    enc = net.encode(pts, torch.full((2, 3), 30))
+    canonical = net.shape_decoder(enc["h"]).reshape(2, 3, 20, 3)
+    pose = out["pose"].detach().numpy()
+    for b in range(2):
+        for t in range(3):
+            yaw = pose[b, t, 3]
+            r = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0],
+                          [0, 0, 1]])
+            expected = canonical[b, t].detach().numpy() @ r.T + pose[b, t, :3]
+            np.testing.assert_allclose(out["complete"][b, t].detach().numpy(), expected,
+                                       atol=1e-4)
+    # the pose decoder is trained by the shape loss in this mode
+    ids = {id(p) for p in net.shape_parameters()}
+    assert all(id(p) in ids for p in net.pose_decoder.parameters())
+    with pytest.raises(ConfigError, match="shape_frame"):
+        ModelConfig(shape_frame="world")

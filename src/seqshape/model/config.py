@@ -38,6 +38,11 @@ class ModelConfig:
     """Extension (not in the paper): append the unit direction from the sensor to the frame
     mean to every demeaned point (encoder input 6 instead of 3), restoring the viewpoint
     that demeaning removes (which side of the vehicle faces the sensor)."""
+    shape_frame: str = "sensor"
+    """Frame of the shape decoder's output. ``"sensor"`` (the paper): the MLP outputs X'_t
+    directly in the demeaned sensor frame. ``"canonical"`` (extension): the MLP outputs the
+    shape in the canonical vehicle frame and it is placed with the predicted pose,
+    X_t = R(yaw_t) C_t + (x_t, y_t, z_t); the Chamfer loss then also trains the pose decoder."""
 
     def __post_init__(self):
         for name in ("encoder1", "encoder2", "shape_decoder", "pose_decoder"):
@@ -46,6 +51,9 @@ class ModelConfig:
                 raise ConfigError(f"ModelConfig.{name} must be a non-empty tuple of positive "
                                   f"widths, got {getattr(self, name)!r}")
             object.__setattr__(self, name, value)
+        if self.shape_frame not in ("sensor", "canonical"):
+            raise ConfigError(f"ModelConfig.shape_frame must be 'sensor' or 'canonical', got "
+                              f"{self.shape_frame!r}")
         for name in ("num_points", "hidden", "num_complete"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"ModelConfig.{name} must be >= 1, got {getattr(self, name)}")
@@ -70,7 +78,7 @@ class ModelConfig:
 
 
 MODEL_PRESETS: dict[str, ModelConfig] = {
-    "small": ModelConfig(),
+    "small": ModelConfig(shape_frame="canonical"),
     "paper": ModelConfig(num_points=1024, encoder1=(128, 256), encoder2=(512, 1024),
                          hidden=1024, shape_decoder=(1024, 1024), pose_decoder=(512, 256),
                          num_complete=2048),

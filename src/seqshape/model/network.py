@@ -94,6 +94,17 @@ class ShapePoseNet(nn.Module):
         """Encoder + fusion (GRU or linear): what stage 1 trains besides the shape decoder."""
         return list(self.encoder.parameters()) + list(self.fusion.parameters())
 
+    def shape_parameters(self) -> list[nn.Parameter]:
+        """Everything the shape (Chamfer) loss reaches: stage 1's parameters.
+
+        With ``shape_frame="canonical"`` the shape is placed by the predicted pose, so the pose
+        decoder is part of it.
+        """
+        params = self.backbone_parameters() + list(self.shape_decoder.parameters())
+        if self.cfg.shape_frame == "canonical":
+            params += list(self.pose_decoder.parameters())
+        return params
+
     def encode(self, points: torch.Tensor, lengths: torch.Tensor,
                hidden: torch.Tensor | None = None, last_mean: torch.Tensor | None = None,
                seen: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -138,10 +149,23 @@ class ShapePoseNet(nn.Module):
         return {"h": torch.stack(hs, 1), "means": torch.stack(means, 1),
                 "seen": torch.stack(seens, 1), "hidden": h, "mean": mean, "seen_last": seen_t}
 
-    def decode_shape(self, h: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
-        """Complete shape (..., K, 3) in the sensor frame from states (..., H), means (..., 3)."""
+    def decode_shape(self, h: torch.Tensor, mean: torch.Tensor,
+                     pose: torch.Tensor | None = None) -> torch.Tensor:
+        """Complete shape (..., K, 3) in the sensor frame from states (..., H), means (..., 3).
+
+        With ``shape_frame="canonical"`` the decoded canonical shape is placed with ``pose``
+        (..., 4) (decoded here when not given).
+        """
         out = self.shape_decoder(h).reshape(*h.shape[:-1], self.cfg.num_complete, 3)
-        return out + mean.unsqueeze(-2)
+        if self.cfg.shape_frame == "sensor":
+            return out + mean.unsqueeze(-2)
+        if pose is None:
+            pose = self.decode_pose(h, mean)
+        c, s = torch.cos(pose[..., 3:4]), torch.sin(pose[..., 3:4])  # (..., 1)
+        x = c * out[..., 0] - s * out[..., 1]
+        y = s * out[..., 0] + c * out[..., 1]
+        placed = torch.stack([x, y, out[..., 2]], dim=-1)  # (..., K, 3)
+        return placed + pose[..., :3].unsqueeze(-2)
 
     def decode_pose(self, h: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
         """Pose (..., 4) = (x, y, z, yaw) in the sensor frame; yaw = atan2(sin, cos)."""
@@ -161,9 +185,12 @@ class ShapePoseNet(nn.Module):
         """
         enc = self.encode(points, lengths, hidden, last_mean, seen)
         out = {"hidden": enc["hidden"], "mean": enc["mean"], "seen": enc["seen"]}
+        if pose or (shape and self.cfg.shape_frame == "canonical"):
+            pose_t = self.decode_pose(enc["h"], enc["means"])
+            if pose:
+                out["pose"] = pose_t
         if shape:
-            out["complete"] = self.decode_shape(enc["h"], enc["means"])
-        if pose:
-            out["pose"] = self.decode_pose(enc["h"], enc["means"])
+            out["complete"] = self.decode_shape(
+                enc["h"], enc["means"], pose_t if self.cfg.shape_frame == "canonical" else None)
         return out
 

@@ -190,7 +190,7 @@ class Trainer:
     def _stage_groups(self, stage: int) -> list[dict[str, Any]]:
         m, lr = self.model, self.cfg.stages[stage].lr
         if stage == 0:
-            params = m.backbone_parameters() + list(m.shape_decoder.parameters())
+            params = m.shape_parameters()
         elif stage == 1:
             params = list(m.pose_decoder.parameters())
         else:
