@@ -96,7 +96,10 @@ def export_tracks(tracks: Sequence[Track], out: str | Path, val_fraction: float 
 
     Tracks with fewer than ``min_points`` accumulated points are left out (their reference
     shape would be meaningless). About ``val_fraction`` of the tracks (chosen by a stable hash of
-    the track id) go to the "val" split, the rest to "train". Returns the opened dataset.
+    the track id) go to the "val" split, the rest to "train", so that ``seqshape train --data
+    out`` works directly: there is always at least one "train" track, and at least one "val"
+    track when two or more tracks are kept and ``val_fraction > 0`` (a single track is "train"
+    only; the trainer then skips validation with a warning). Returns the opened dataset.
     """
     from seqshape.data.dataset import write_dataset
 
@@ -116,7 +119,12 @@ def export_tracks(tracks: Sequence[Track], out: str | Path, val_fraction: float 
                           meta))
     if not kept:
         raise ValueError("no track has enough points to export")
-    if not any(t.meta["split"] == "val" for t in kept) and len(kept) > 1 and val_fraction > 0:
+    splits = [t.meta["split"] for t in kept]
+    if "train" not in splits:  # every track hashed into val: keep one for training
+        kept[0].meta["split"] = "train"
+    elif "val" not in splits and len(kept) > 1 and val_fraction > 0:
         kept[-1].meta["split"] = "val"
+    log.info("export: %d train / %d val tracks", sum(t.meta["split"] == "train" for t in kept),
+             sum(t.meta["split"] == "val" for t in kept))
     return write_dataset(out, kept, config={"source": "seqshape label --export-tracks",
                                             "val_fraction": val_fraction})

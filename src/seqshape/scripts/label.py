@@ -35,20 +35,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write the sequence's GT-cropped tracks as a track dataset "
                              "(complete = mirrored accumulation) for `seqshape train` "
                              "fine-tuning, and stop")
+    parser.add_argument("--val-fraction", type=float, default=0.2,
+                        help="--export-tracks: share of tracks in the val split (by a hash of "
+                             "the track id; at least one train track, and one val track when "
+                             "there are two or more)")
 
 
 def run(args: argparse.Namespace) -> int:
     from seqshape.amodal.labeler import LabelConfig, label_sequence, write_labels, write_overlays
     from seqshape.data.kitti import KittiTrackingSequence, extract_tracks
-    from seqshape.errors import ConfigError
+    from seqshape.errors import ConfigError, DataError
 
     if args.export_tracks is not None:
         from seqshape.amodal.accumulate import export_tracks
 
         seq = KittiTrackingSequence(args.kitti, args.sequence)
-        ds = export_tracks(extract_tracks(seq), args.export_tracks)
-        print(f"wrote {len(ds)} tracks to {args.export_tracks}; fine-tune with "
-              f"`seqshape train --data {args.export_tracks} --out RUN`")
+        if not 0 <= args.val_fraction < 1:
+            raise ConfigError(f"--val-fraction must be in [0, 1), got {args.val_fraction}")
+        try:
+            ds = export_tracks(extract_tracks(seq), args.export_tracks,
+                               val_fraction=args.val_fraction)
+        except ValueError as exc:  # no track with enough points
+            raise DataError(args.kitti, f"sequence {args.sequence}: {exc}") from None
+        n_val = sum(e.get("split") == "val" for e in ds.entries)
+        print(f"wrote {len(ds)} tracks ({len(ds) - n_val} train, {n_val} val) to "
+              f"{args.export_tracks}; fine-tune with `seqshape train --data "
+              f"{args.export_tracks} --out RUN --init pretrained --stage-steps 0,0,300 "
+              f"--lr 2e-4` (docs/amodal.md)")
         return 0
     if args.out is None:
         raise ConfigError("--out is required (unless --export-tracks)")

@@ -5,6 +5,8 @@ Examples::
     seqshape train --data data/paper --model sequential --preset small --out runs/seq
     seqshape train --data data/paper --model baseline --out runs/base --time-budget-min 35
     seqshape train --data data/paper --out runs/seq --resume          # after a kill
+    seqshape train --data TRACKS --out runs/ft --init pretrained --stage-steps 0,0,300 \
+        --lr 2e-4                                                    # joint-only fine-tune
     torchrun --nproc_per_node 2 -m seqshape.cli train --data ... --out ...   # data-parallel
 """
 
@@ -24,6 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training preset: small (2 CPU cores), paper (GPU), smoke (tests)")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --out from its last checkpoint")
+    parser.add_argument("--init", default=None, metavar="CHECKPOINT|pretrained",
+                        help="start from these weights (a model.pt, a training checkpoint, or "
+                             "'pretrained' = the shipped weights of --model) instead of random "
+                             "ones; kind and model config must match; stages with 0 steps "
+                             "(--stage-steps 0,0,N) are skipped")
     parser.add_argument("--seed", type=int, default=None)
     parser.add_argument("--stage-steps", default=None, metavar="A,B,C",
                         help="optimiser steps of stages 1,2,3 (upper bounds with a time budget)")
@@ -110,10 +117,16 @@ def _model_sets(items: list[str]) -> dict:
 def run(args: argparse.Namespace) -> int:
     from seqshape.train.trainer import Trainer
 
-    trainer = Trainer(args.data, args.out, args.model, build_config(args), resume=args.resume)
+    trainer = Trainer(args.data, args.out, args.model, build_config(args), resume=args.resume,
+                      init=args.init)
     path = trainer.run()
     if trainer.is_main:
         m = trainer.metrics
+        if trainer.init is not None:
+            print(f"initialised from {trainer.init['path']}")
+            if "init_val_cd_m" in m:
+                print(f"initial weights: val CD {100 * m['init_val_cd_m']:.2f} cm, pose loss "
+                      f"{m['init_val_pose_m2']:.4f} m^2")
         if "val_cd_m" in m:
             print(f"val CD {100 * m['val_cd_m']:.2f} cm, pose loss {m['val_pose_m2']:.4f} m^2")
         print(f"wrote {path}")

@@ -5,11 +5,17 @@ Both are plain dicts of tensors, numbers, strings and lists, readable with
 adds ``"training"``: stage, step, stage clock, optimiser, schedule, loss sigmas, and the
 torch / numpy / python RNG states, so that a resumed run continues exactly as an
 uninterrupted one would.
+
+:func:`load_init` reads the weights a run starts from (``seqshape train --init``): an exported
+``model.pt``, a training checkpoint (only its weights), or ``"pretrained"`` (the shipped
+``seqshape/pretrained/<kind>.pt``), checking that kind and model configuration match the run.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
+import json
 import random
 from pathlib import Path
 from typing import Any
@@ -18,9 +24,13 @@ import numpy as np
 import torch
 
 from seqshape._io import atomic_open
-from seqshape.errors import DataError
+from seqshape.errors import ConfigError, DataError
+from seqshape.model import estimator
+from seqshape.model.config import ModelConfig
 from seqshape.model.estimator import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_model_file
 from seqshape.model.network import ShapePoseNet
+
+PRETRAINED = "pretrained"
 
 
 def rng_state() -> dict[str, Any]:
@@ -68,3 +78,62 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     if not isinstance(training, dict) or "stage" not in training:
         raise DataError(path, "holds weights only, not a resumable training checkpoint")
     return payload
+
+
+def resolve_init(spec: str | Path, kind: str) -> Path:
+    """The weights file named by ``--init``: a path, or ``"pretrained"`` = the shipped
+    ``seqshape/pretrained/<kind>.pt`` (a :class:`DataError` when it is not installed)."""
+    if str(spec) != PRETRAINED:
+        return Path(spec)
+    path = estimator.PRETRAINED_DIR / f"{kind}.pt"
+    if not path.is_file():
+        raise DataError(path, f"shipped {kind} weights are missing from this installation; "
+                              f"pass --init RUN/model.pt (a run of `seqshape train --model "
+                              f"{kind}`) instead of --init {PRETRAINED}")
+    return path
+
+
+def load_init(spec: str | Path, kind: str, model_cfg: ModelConfig
+              ) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Weights to start a run from, checked against the run's ``kind`` and ``model_cfg``.
+
+    Returns ``(state_dict, record)``; ``record`` (JSON-able: source, resolved path, sha256,
+    kind, whether the file was a training checkpoint and at which stage/step, its numeric
+    metrics) goes into ``config.json`` and every file the run writes. A checkpoint's optimiser,
+    sigmas and RNG states are not used: the new run starts its stages afresh.
+    """
+    path = resolve_init(spec, kind)
+    payload = read_model_file(path)
+    if payload["kind"] != kind:
+        raise ConfigError(f"--init {path}: holds {payload['kind']} weights but this run trains "
+                          f"a {kind} model; pass --model {payload['kind']} or {kind} weights")
+    try:
+        src_cfg = ModelConfig.from_dict(payload["model_config"]).to_dict()
+    except (ConfigError, TypeError, ValueError) as exc:
+        raise DataError(path, f"invalid model_config ({exc})") from None
+    run_cfg = model_cfg.to_dict()
+    diff = [k for k in run_cfg if src_cfg.get(k) != run_cfg[k]]
+    if diff:
+        what = ", ".join(f"{k} {src_cfg.get(k)!r} (run: {run_cfg[k]!r})" for k in diff)
+        fix = " ".join(f"--model-set {k}={json.dumps(src_cfg.get(k))}" for k in diff)
+        raise ConfigError(f"--init {path}: the weights' model configuration differs from this "
+                          f"run's: {what}; train with the preset the weights came from or "
+                          f"add: {fix}")
+    training = payload.get("training")
+    record: dict[str, Any] = {
+        "source": str(spec), "path": str(path.resolve()), "sha256": _sha256(path),
+        "kind": kind, "file": "checkpoint" if isinstance(training, dict) else "model",
+        "metrics": {k: v for k, v in payload.get("metrics", {}).items()
+                    if isinstance(v, (int, float, str)) and not isinstance(v, bool)}}
+    if isinstance(training, dict):
+        record.update(stage=int(training.get("stage", 0)),
+                      global_step=int(training.get("global_step", 0)))
+    return payload["state_dict"], record
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -2,7 +2,7 @@
 
 Outputs in the run folder ``RUN``::
 
-    config.json      resolved configuration (train + model + kind + data path)
+    config.json      resolved configuration (train + model + kind + data path + init source)
     last.pt          latest checkpoint (every ``ckpt_every`` steps and at each stage end)
     stage{1,2,3}.pt  checkpoint at the end of each stage
     model.pt         exported weights (for :class:`seqshape.Estimator`)
@@ -17,6 +17,11 @@ Data parallelism (``torchrun --nproc_per_node R``, gloo on CPU): every process b
 same model from the seed, takes its disjoint shard of each global batch
 (:func:`seqshape.data.windows.batch_for_step`), and gradients are averaged with one
 all-reduce per step before the optimiser step. Only rank 0 writes files.
+
+Fine-tuning (``init``): the model starts from the weights of a ``model.pt``, a training
+checkpoint or the shipped pretrained file (:func:`seqshape.train.checkpoint.load_init`) instead
+of the seeded random initialisation; stages with 0 steps are skipped (no optimiser, no
+validation, no ``stage{n}.pt``), so ``stages=(0, 0, N)`` fine-tunes jointly only.
 """
 
 from __future__ import annotations
@@ -55,10 +60,14 @@ def place_complete(complete: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
 
 
 class Trainer:
-    """Train one model (``kind`` "sequential" or "baseline") on ``data`` into ``out``."""
+    """Train one model (``kind`` "sequential" or "baseline") on ``data`` into ``out``.
+
+    ``init``: weights to start from (a ``model.pt`` / checkpoint path or ``"pretrained"``);
+    ignored when resuming an existing run (its checkpoint holds the weights).
+    """
 
     def __init__(self, data: str | Path, out: str | Path, kind: str, cfg: TrainConfig,
-                 resume: bool = False):
+                 resume: bool = False, init: str | Path | None = None):
         if kind not in KINDS:
             raise ConfigError(f"unknown model kind {kind!r}; choose from {KINDS}")
         self.out, self.data, self.kind = Path(out), Path(data), kind
@@ -85,8 +94,22 @@ class Trainer:
         self.state: dict[str, Any] = {"stage": 0, "step": 0, "elapsed": 0.0, "global_step": 0,
                                       "sigma_init": False, "optimizer": None}
         self.metrics: dict[str, Any] = {}
+        self.init: dict[str, Any] | None = None
         if payload is not None:
             self._load(payload)
+            self.init = payload.get("init")
+            if init is not None and (self.init or {}).get("source") != str(init):
+                log.warning("resuming %s: --init %s is ignored (the checkpoint holds the "
+                            "weights; the run started from %s)", self.out, init,
+                            (self.init or {}).get("source", "random weights"))
+        elif init is not None:
+            state_dict, self.init = ckpt.load_init(init, kind, self.model.cfg)
+            try:
+                self.model.load_state_dict(state_dict)
+            except RuntimeError as exc:
+                raise DataError(self.init["path"], f"weights do not fit the model they "
+                                                   f"describe ({exc})") from None
+            log.info("initialised from %s (%s)", self.init["path"], self.init["file"])
         self.runlog = RunLog(self.out, self.state["global_step"], cfg.tensorboard) \
             if self.is_main else None
         self._val_batches = self._make_val_batches()
@@ -305,7 +328,7 @@ class Trainer:
 
     # ------------------------------------------------------------------ files
     def _payload(self, opt) -> dict[str, Any]:
-        payload = ckpt.model_payload(self.model, self.cfg.to_dict(), self.metrics)
+        payload = self._model_payload()
         payload["training"] = {
             "stage": self.state["stage"], "step": self.state["step"],
             "elapsed": self.state["elapsed"], "global_step": self.state["global_step"],
@@ -314,6 +337,12 @@ class Trainer:
             "scheduler": {"kind": "cosine-per-stage", "lr_min_ratio": self.cfg.lr_min_ratio},
             "joint": {k: v.clone() for k, v in self.joint.state_dict().items()},
             "rng": ckpt.rng_state(), "world_size": self.world}
+        return payload
+
+    def _model_payload(self) -> dict[str, Any]:
+        payload = ckpt.model_payload(self.model, self.cfg.to_dict(), self.metrics)
+        if self.init is not None:
+            payload["init"] = self.init
         return payload
 
     def _save(self, opt, stage_end: int | None = None) -> None:
@@ -328,21 +357,37 @@ class Trainer:
             atomic_write_json(self.out / "config.json", {
                 "kind": self.kind, "data": str(self.data), "world_size": self.world,
                 "train_config": self.cfg.to_dict(),
-                "model_config": self.model.cfg.to_dict()})
+                "model_config": self.model.cfg.to_dict(), "init": self.init})
+
+    def _validate_init(self) -> None:
+        """Score the initial weights once (metrics ``init_val_cd_m``, ``init_val_pose_m2``)."""
+        if not self.is_main or self.init is None or "init_val_cd_m" in self.metrics:
+            return
+        self.model.eval()
+        val = self.validate(0)
+        if val:
+            self.metrics.update(init_val_cd_m=val["val_cd_m"],
+                                init_val_pose_m2=val["val_pose_m2"])
+            log.info("initial weights: val CD %.4f m, pose %.4f m^2", val["val_cd_m"],
+                     val["val_pose_m2"])
 
     def run(self) -> Path:
         """Run the remaining stages, export ``RUN/model.pt`` and return its path."""
         self.write_config()
         t0 = time.monotonic()
+        self._validate_init()
         for stage in range(self.state["stage"], 3):
+            if self.cfg.stages[stage].steps == 0:
+                log.info("stage %d/3 (%s): 0 steps, skipped", stage + 1, STAGE_NAMES[stage])
+                self.state.update(stage=stage + 1, step=0, elapsed=0.0, optimizer=None)
+                continue
             self._run_stage(stage)
         path = self.out / "model.pt"
         if self.is_main:
             sig = self.joint.sigmas
             self.metrics.update(global_steps=self.state["global_step"], sigma_cd=sig[0],
                                 sigma_p=sig[1], last_session_seconds=time.monotonic() - t0)
-            ckpt.save_payload(path, ckpt.model_payload(self.model, self.cfg.to_dict(),
-                                                       self.metrics))
+            ckpt.save_payload(path, self._model_payload())
             self.runlog.close()
             log.info("wrote %s (%s)", path, {k: round(v, 5) for k, v in self.metrics.items()
                                              if isinstance(v, float)})
@@ -351,9 +396,10 @@ class Trainer:
 
 
 def train(data: str | Path, out: str | Path, kind: str = "sequential",
-          cfg: TrainConfig | None = None, resume: bool = False) -> Path:
-    """Train (or resume) a run; returns the exported ``model.pt`` path."""
-    return Trainer(data, out, kind, cfg or TrainConfig(), resume).run()
+          cfg: TrainConfig | None = None, resume: bool = False,
+          init: str | Path | None = None) -> Path:
+    """Train (or resume) a run, optionally from ``init`` weights; returns ``RUN/model.pt``."""
+    return Trainer(data, out, kind, cfg or TrainConfig(), resume, init).run()
 
 
 # ---------------------------------------------------------------------- distributed helpers

@@ -1,0 +1,224 @@
+"""``seqshape train --init``: start from existing weights, skipped stages, fine-tuning on
+tracks exported by the amodal labeller (``export_tracks``)."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import json
+import shutil
+import zlib
+
+import numpy as np
+import pytest
+import torch
+from _model_data import box_surface, make_dataset
+
+from seqshape.amodal.accumulate import export_tracks
+from seqshape.data import Track
+from seqshape.errors import ConfigError, DataError
+from seqshape.geometry import canonical_to_sensor
+from seqshape.model import Estimator
+from seqshape.model import estimator as estimator_module
+from seqshape.train import Trainer, get_train_config
+
+SMOKE = get_train_config("smoke")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("tracks") / "ds", n_train=4, n_val=2)
+
+
+@pytest.fixture(scope="module")
+def source(dataset, tmp_path_factory):
+    """A short smoke-preset sequential run: its folder (model.pt, last.pt, ...)."""
+    run = tmp_path_factory.mktemp("src") / "run"
+    Trainer(dataset.path, run, "sequential", SMOKE.with_stage_steps((3, 2, 3))).run()
+    return run
+
+
+def _weights(path):
+    return torch.load(path, weights_only=True)["state_dict"]
+
+
+def _assert_same(a, b):
+    assert set(a) == set(b)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_zero_steps_reproduces_the_source(dataset, source, tmp_path):
+    src = source / "model.pt"
+    tr = Trainer(dataset.path, tmp_path / "run", "sequential", SMOKE.with_stage_steps((0, 0, 0)),
+                 init=src)
+    _assert_same(tr.model.state_dict(), _weights(src))  # before any step
+    out = tr.run()
+    _assert_same(_weights(out), _weights(src))
+    assert not any((tmp_path / "run" / f"stage{i}.pt").exists() for i in (1, 2, 3))
+    conf = json.loads((tmp_path / "run" / "config.json").read_text())
+    init = conf["init"]
+    assert init["source"] == str(src) and init["file"] == "model"
+    assert init["sha256"] == hashlib.sha256(src.read_bytes()).hexdigest()
+    assert torch.load(out, weights_only=True)["init"]["sha256"] == init["sha256"]
+    # same val windows (same config and seed) and same weights as at the source's final
+    # validation: the initial score equals the source's final one
+    src_metrics = torch.load(src, weights_only=True)["metrics"]
+    assert tr.metrics["init_val_cd_m"] == pytest.approx(src_metrics["val_cd_m"], rel=1e-5)
+    assert tr.metrics["init_val_pose_m2"] == pytest.approx(src_metrics["val_pose_m2"], rel=1e-5)
+
+
+def test_init_from_training_checkpoint(dataset, source, tmp_path):
+    tr = Trainer(dataset.path, tmp_path / "run", "sequential", SMOKE.with_stage_steps((0, 0, 0)),
+                 init=source / "stage2.pt")
+    _assert_same(_weights(tr.run()), _weights(source / "stage2.pt"))
+    assert tr.init["file"] == "checkpoint" and tr.init["stage"] == 2
+    assert tr.init["global_step"] == 5
+
+
+def test_kind_and_config_mismatch_are_clear_errors(dataset, source, tmp_path):
+    with pytest.raises(ConfigError, match=r"holds sequential weights.*--model sequential"):
+        Trainer(dataset.path, tmp_path / "a", "baseline", SMOKE, init=source / "model.pt")
+    cfg = dataclasses.replace(SMOKE, model_overrides={**SMOKE.model_overrides, "hidden": 32})
+    with pytest.raises(ConfigError, match=r"hidden 64 \(run: 32\).*--model-set hidden=64"):
+        Trainer(dataset.path, tmp_path / "b", "sequential", cfg, init=source / "model.pt")
+    with pytest.raises(DataError, match="weights file not found"):
+        Trainer(dataset.path, tmp_path / "c", "sequential", SMOKE, init=tmp_path / "none.pt")
+
+
+def test_pretrained(dataset, source, tmp_path, monkeypatch):
+    shipped = tmp_path / "pretrained"
+    shipped.mkdir()
+    monkeypatch.setattr(estimator_module, "PRETRAINED_DIR", shipped)
+    with pytest.raises(DataError, match=r"sequential\.pt: shipped sequential weights are"):
+        Trainer(dataset.path, tmp_path / "a", "sequential", SMOKE, init="pretrained")
+    shutil.copy(source / "model.pt", shipped / "sequential.pt")
+    tr = Trainer(dataset.path, tmp_path / "b", "sequential", SMOKE.with_stage_steps((0, 0, 0)),
+                 init="pretrained")
+    _assert_same(_weights(tr.run()), _weights(source / "model.pt"))
+    assert tr.init["source"] == "pretrained"
+    assert tr.init["path"] == str((shipped / "sequential.pt").resolve())
+
+
+def test_joint_only_fine_tune(dataset, source, tmp_path):
+    run = tmp_path / "run"
+    tr = Trainer(dataset.path, run, "sequential", SMOKE.with_stage_steps((0, 0, 3)),
+                 init=source / "model.pt")
+    out = tr.run()
+    assert not (run / "stage1.pt").exists() and not (run / "stage2.pt").exists()
+    assert torch.load(run / "stage3.pt", weights_only=True)["training"]["global_step"] == 3
+    rows = list(csv.DictReader(open(run / "log.csv")))
+    assert rows and {r["stage"] for r in rows} == {"3"}
+    before, after = _weights(source / "model.pt"), _weights(out)
+    changed = {k.split(".")[0] for k in after if not torch.equal(before[k], after[k])}
+    assert {"pose_decoder", "shape_decoder"} <= changed and len(changed) >= 3, changed
+    assert Estimator.from_checkpoint(out).recurrent
+    # resuming the finished run does not reload the init weights
+    again = Trainer(dataset.path, run, "sequential", SMOKE.with_stage_steps((0, 0, 3)),
+                    resume=True, init=source / "model.pt")
+    _assert_same(again.model.state_dict(), after)
+    assert again.init["sha256"] == tr.init["sha256"]
+
+
+# --------------------------------------------------------------------------- export -> train
+SIZE = np.array([4.2, 1.8, 1.5])
+
+
+def _seen_track(track_id: str, seed: int, frames: int = 8) -> Track:
+    """A box car driving past the sensor; each frame keeps the sensor-facing surface points
+    (no complete shape: export_tracks accumulates it)."""
+    rng = np.random.default_rng(seed)
+    surface = box_surface(SIZE, 4000, rng)
+    t = np.arange(frames)
+    poses = np.stack([8.0 + 0.8 * t, np.full(frames, 4.0 + seed), np.full(frames, -0.9),
+                      np.full(frames, 0.1 * seed)], 1)
+    points = []
+    for pose in poses:
+        s = canonical_to_sensor(surface, pose)
+        near = s[np.linalg.norm(s[:, :2], axis=1) < np.linalg.norm(pose[:2])]
+        points.append(near[rng.random(len(near)) < 0.3])
+    return Track(track_id, points, poses, None, SIZE, t * 0.1, {"sequence": "0000"})
+
+
+def _ids_hashing_to_val(n, val_fraction):
+    ids = [f"0000_{i:04d}" for i in range(200)]
+    return [i for i in ids if zlib.crc32(i.encode()) % 1000 / 1000 < val_fraction][:n]
+
+
+def test_export_always_has_a_train_split(tmp_path):
+    one = _ids_hashing_to_val(1, 0.3)[0]
+    ds = export_tracks([_seen_track(one, 0)], tmp_path / "one", val_fraction=0.3)
+    assert [e["split"] for e in ds.entries] == ["train"]
+    two = _ids_hashing_to_val(2, 0.3)
+    ds = export_tracks([_seen_track(i, k) for k, i in enumerate(two)], tmp_path / "two",
+                       val_fraction=0.3)
+    assert sorted(e["split"] for e in ds.entries) == ["train", "val"]
+
+
+@pytest.mark.parametrize("n_tracks", [1, 3])
+def test_export_tracks_then_cli_fine_tune(source, tmp_path, n_tracks, capsys):
+    from seqshape.cli import main
+
+    tracks = [_seen_track(f"0000_{k:04d}", k) for k in range(n_tracks)]
+    export_tracks(tracks, tmp_path / "tracks")
+    out = tmp_path / "ft"
+    args = ["train", "--data", str(tmp_path / "tracks"), "--out", str(out), "--preset", "smoke",
+            "--init", str(source / "model.pt"), "--stage-steps", "0,0,2", "--lr", "2e-4"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert f"initialised from {(source / 'model.pt').resolve()}" in printed
+    assert ("initial weights: val CD" in printed) == (n_tracks > 1)
+    conf = json.loads((out / "config.json").read_text())
+    assert conf["init"]["source"] == str(source / "model.pt")
+    assert conf["train_config"]["stages"][2]["lr"] == pytest.approx(1e-4)
+    est = Estimator.from_checkpoint(out / "model.pt")
+    res = est.step(["a"], [tracks[0].points[0]])[0]
+    assert res.complete.shape == (128, 3) and np.all(np.isfinite(res.pose))
+
+
+def _tiny_kitti(root, frames: int = 6):
+    """A hand-built KITTI tracking sequence 0000: three box cars, the sensor-facing surface of
+    each in the scan (plus ground), boxes in label_02."""
+    from seqshape.camera import kitti_default_calib, write_calib
+    from seqshape.data.kitti import KittiLabel, pose_to_label_fields, write_velodyne
+    from seqshape.data.kitti import write_labels as write_kitti
+
+    calib = kitti_default_calib()
+    write_calib(root / "calib" / "0000.txt", calib)
+    z = -1.73 + SIZE[2] / 2
+    labels = []
+    for t in range(frames):
+        rng = np.random.default_rng(t)
+        scan = [np.c_[rng.uniform([3, -10], [40, 10], (2000, 2)), np.full(2000, -1.73)]]
+        for k, (x, y, v, yaw) in enumerate([(8, 2.5, 0.5, 0.2), (14, -3.0, 0.7, -0.1),
+                                            (22, 3.5, 0.4, 0.05)]):
+            pose = np.array([x + v * t, y, z, yaw])
+            s = canonical_to_sensor(box_surface(SIZE, 3000, rng), pose)
+            scan.append(s[np.linalg.norm(s[:, :2], axis=1) < np.linalg.norm(pose[:2])])
+            labels.append(KittiLabel(frame=t, track_id=k, type="Car", truncated=0, occluded=0,
+                                     bbox=[0, 0, 1, 1], **pose_to_label_fields(pose, SIZE, calib)))
+        scan = np.vstack(scan).astype(np.float32)
+        write_velodyne(root / "velodyne" / "0000" / f"{t:06d}.bin",
+                       np.c_[scan, np.zeros(len(scan))])
+    write_kitti(root / "label_02" / "0000.txt", labels)
+    return root
+
+
+def test_sc_gt_fine_tune_command_sequence(source, tmp_path):
+    """docs/amodal.md: export tracks -> train --init -> label --mode sc-gt --checkpoint."""
+    from seqshape.amodal.kins import read_kins
+    from seqshape.cli import main
+
+    kitti = _tiny_kitti(tmp_path / "kitti")
+    tracks, run, labels = tmp_path / "tracks", tmp_path / "run", tmp_path / "labels.json"
+    assert main(["label", "--kitti", str(kitti), "--sequence", "0000",
+                 "--export-tracks", str(tracks)]) == 0
+    splits = [e["split"] for e in json.loads((tracks / "manifest.json").read_text())["tracks"]]
+    assert len(splits) == 3 and "train" in splits and "val" in splits
+    assert main(["train", "--data", str(tracks), "--out", str(run), "--preset", "smoke",
+                 "--init", str(source / "model.pt"), "--stage-steps", "0,0,2"]) == 0
+    assert main(["label", "--kitti", str(kitti), "--sequence", "0000", "--mode", "sc-gt",
+                 "--checkpoint", str(run / "model.pt"), "--out", str(labels)]) == 0
+    assert labels.is_file()
+    read_kins(labels)
