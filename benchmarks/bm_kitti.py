@@ -1,35 +1,25 @@
 """Throughput of the KITTI I/O and camera hot paths on an HDL-64E-sized scan (~120k points).
 
-Run: python benchmarks/bm_kitti.py
+Run: python benchmarks/bm_kitti.py [--repeats 7] [--seed 0]
+Two warm-up calls, then the median and spread (min-max) of the timed calls; fixed seed.
 """
 
 from __future__ import annotations
 
-import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+from _bench import bench_parser, print_table, time_it
 
 from seqshape.amodal.kins import mask_to_rle, rle_to_mask
 from seqshape.camera import kitti_default_calib, project_points
 from seqshape.data.kitti import crop_box, read_velodyne, write_velodyne
 
 
-def bench(fn, repeats=7, warmup=2):
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), min(times), max(times)
-
-
 def main():
-    rng = np.random.default_rng(0)
+    args = bench_parser(__doc__, repeats=7).parse_args()
+    rng = np.random.default_rng(args.seed)
     n = 120_000
     scan = np.c_[rng.uniform(-80, 80, (n, 2)), rng.uniform(-2, 2, n),
                  rng.uniform(0, 1, n)].astype(np.float32)
@@ -49,10 +39,11 @@ def main():
             ("mask_to_rle (1242x375)", lambda: mask_to_rle(mask)),
             ("rle_to_mask (1242x375)", lambda: rle_to_mask(mask_to_rle(mask))),
         ]
-        print(f"{'operation':30s} {'median ms':>10s} {'min ms':>8s} {'max ms':>8s}")
+        table = []
         for name, fn in rows:
-            med, lo, hi = bench(fn)
-            print(f"{name:30s} {med * 1e3:10.2f} {lo * 1e3:8.2f} {hi * 1e3:8.2f}")
+            t = time_it(fn, args.repeats, warmup=2)
+            table.append((name, *(f"{v * 1e3:.2f}" for v in (t.median, t.min, t.max))))
+    print_table(("operation", "median ms", "min ms", "max ms"), table)
 
 
 if __name__ == "__main__":

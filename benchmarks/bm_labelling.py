@@ -19,7 +19,6 @@ note when they cannot be loaded).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
@@ -27,6 +26,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from _bench import bench_parser, print_table, time_it
 
 os.environ.setdefault("SEQSHAPE_PROGRESS", "0")
 
@@ -93,27 +94,28 @@ def run_method(root, sequences, name, cfg, estimator, out_dir):
 
 
 def time_method(root, sequence, name, cfg, estimator, repeats):
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res = (oracle_labels(root, sequence, cfg) if name == "oracle-shape"
-               else label_sequence(root, sequence, cfg, estimator))
-        times.append(len(res.images) / (time.perf_counter() - t0))
-    return statistics.median(times), (min(times), max(times))
+    """Frames/s of labelling ``sequence``: (median, (min, max)) over ``repeats`` timed runs.
+
+    No warm-up here: :func:`run_method` has just labelled the same sequence.
+    """
+    timing = time_it(lambda: (oracle_labels(root, sequence, cfg) if name == "oracle-shape"
+                              else label_sequence(root, sequence, cfg, estimator)),
+                     repeats, warmup=0)
+    rates = timing.rates(len(timing.result.images))
+    return statistics.median(rates), (min(rates), max(rates))
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = bench_parser(__doc__, repeats=3, min_repeats=0,
+                     repeats_help="timed runs for frames/s (0: skip)")
     p.add_argument("--scenes", type=Path, default=None, help="scene set (generated if absent)")
     p.add_argument("--sequences", type=int, default=2)
     p.add_argument("--frames", type=int, default=40)
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint", default="pretrained")
     p.add_argument("--modes", nargs="+",
                    default=["oracle-shape", "gt-accumulation", "sc-gt", "sc-seg"])
     p.add_argument("--refine", nargs="+", default=list(REFINE_MODES), choices=REFINE_MODES)
     p.add_argument("--order", default="pixel", choices=["pixel", "median"])
-    p.add_argument("--repeats", type=int, default=3, help="timed runs for frames/s (0: skip)")
     p.add_argument("--out", type=Path, default=None, help="labels + results.json here")
     args = p.parse_args(argv)
 
@@ -145,15 +147,14 @@ def main(argv=None) -> int:
                          "fps_range": spread, "frames": n})
             print(f"  {name}: miss {a['miss_pct']:.2f}%  mIoU {a['miou']:.3f}  "
                   f"visible mIoU {v['miou']:.3f}  {fps:.2f} frames/s", flush=True)
-    print("\n| Method | % Miss | mIoU | mIoU (misses = 0) | visible mIoU | unmatched preds "
-          "| frames/s (median, min-max) |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
-    for r in rows:
-        a = r["amodal"]
-        print(f"| {r['method']} | {a['miss_pct']:.2f} | {a['miou']:.3f} | "
-              f"{a['miou_with_misses']:.3f} | {r['visible']['miou']:.3f} | "
-              f"{a['unmatched_predictions']} | {r['fps']:.2f} ({r['fps_range'][0]:.2f}-"
-              f"{r['fps_range'][1]:.2f}) |")
+    print()
+    print_table(("Method", "% Miss", "mIoU", "mIoU (misses = 0)", "visible mIoU",
+                 "unmatched preds", "frames/s (median, min-max)"),
+                [(r["method"], f"{r['amodal']['miss_pct']:.2f}", f"{r['amodal']['miou']:.3f}",
+                  f"{r['amodal']['miou_with_misses']:.3f}", f"{r['visible']['miou']:.3f}",
+                  r["amodal"]["unmatched_predictions"],
+                  f"{r['fps']:.2f} ({r['fps_range'][0]:.2f}-{r['fps_range'][1]:.2f})")
+                 for r in rows])
     instances = rows[0]["amodal"]["n"] if rows else 0
     print(f"\n{instances} reference instances, {rows[0]['frames'] if rows else 0} frames; {note}")
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -1,17 +1,15 @@
 """Time the evaluation metrics: Chamfer (cKDTree) and exact EMD (linear_sum_assignment).
 
-Run: ``python benchmarks/bm_metrics.py [--repeats 5]``. Clouds are a vehicle-sized box surface
-(4.5 x 1.8 x 1.5 m) sampled twice with fixed seeds, as an estimate against ground truth would be.
-Prints the median and spread (min-max) over the repeats after one warm-up call.
+Run: ``python benchmarks/bm_metrics.py [--repeats 5] [--seed 0]``. Clouds are a vehicle-sized
+box surface (4.5 x 1.8 x 1.5 m) sampled twice with fixed seeds (``seed + 1``, ``seed + 2``), as an
+estimate against ground truth would be. Prints the median and spread (min-max) over the repeats
+after one warm-up call.
 """
 
 from __future__ import annotations
 
-import argparse
-import statistics
-import time
-
 import numpy as np
+from _bench import bench_parser, print_table, time_it
 
 from seqshape.evaluation.metrics import chamfer_distance, earth_movers_distance
 
@@ -28,33 +26,18 @@ def box_surface(n: int, seed: int, size=(4.5, 1.8, 1.5)) -> np.ndarray:
     return u.astype(np.float32)
 
 
-def timeit(fn, repeats: int) -> tuple[float, float, float]:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), min(times), max(times)
-
-
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    args = parser.parse_args()
+    args = bench_parser(__doc__, repeats=5).parse_args()
     rows = []
     for n in (1024, 2048):
-        a = box_surface(n, 1)
-        b = box_surface(n, 2) + np.float32(0.05)  # a slightly offset second sampling
+        a = box_surface(n, args.seed + 1)
+        b = box_surface(n, args.seed + 2) + np.float32(0.05)  # a slightly offset second sampling
         for name, fn in (("chamfer", lambda a=a, b=b: chamfer_distance(a, b)),
                          ("emd", lambda a=a, b=b: earth_movers_distance(a, b))):
-            med, lo, hi = timeit(fn, args.repeats)
-            rows.append((name, n, med, lo, hi, fn()))
-    print(f"{'metric':<8} {'points':>6} {'median ms':>10} {'min ms':>8} {'max ms':>8} "
-          f"{'value m':>8}")
-    for name, n, med, lo, hi, value in rows:
-        print(f"{name:<8} {n:>6} {med * 1e3:>10.2f} {lo * 1e3:>8.2f} {hi * 1e3:>8.2f} "
-              f"{value:>8.4f}")
+            t = time_it(fn, args.repeats)
+            rows.append((name, n, f"{t.median * 1e3:.2f}", f"{t.min * 1e3:.2f}",
+                         f"{t.max * 1e3:.2f}", f"{t.result:.4f}"))
+    print_table(("metric", "points", "median ms", "min ms", "max ms", "value m"), rows)
 
 
 if __name__ == "__main__":

@@ -11,25 +11,21 @@ sweep of 64 x 4500 rays, 1242 x 375 camera = 466k pixel rays plus the amodal ray
 Warm-up of one frame (Embree BVHs, pixel rays), then ``--repeats`` passes over ``--frames``
 frames; the table shows the median per-frame time over passes. Single process.
 
-    python benchmarks/bm_scenes.py [--frames 8] [--repeats 3] [--sensor hdl64]
+    python benchmarks/bm_scenes.py [--frames 8] [--repeats 3] [--sensor hdl64] [--seed 0]
 """
 
 from __future__ import annotations
 
-import argparse
-import statistics
 import tempfile
-import time
 
 import numpy as np
+from _bench import bench_parser, print_table, time_it
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser(__doc__, repeats=3)
     ap.add_argument("--frames", type=int, default=8)
-    ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--sensor", default="hdl64")
-    ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
 
     from seqshape._io import atomic_write_bytes
@@ -72,23 +68,16 @@ def main() -> None:
     for t in frames:  # cache camera frames so that "truth" times only the labelling
         cams.setdefault(t, camera_stage(t))
     rows = []
-    for name, fn in stages.items():
-        per_pass = []
-        for _ in range(args.repeats):
-            start = time.perf_counter()
-            for t in frames:
-                fn(t)
-            per_pass.append((time.perf_counter() - start) / len(frames))
-        med = statistics.median(per_pass)
-        rows.append((name, med, 1.0 / med))
+    for name, fn in stages.items():  # warmed up above: no warm-up pass here
+        passes = time_it(lambda fn=fn: [fn(t) for t in frames], args.repeats, warmup=0)
+        med = passes.median / len(frames)
+        rows.append((name, f"{med * 1e3:.1f}", f"{1.0 / med:.2f}"))
     pts, _ = lidar_stage(frames[0])
     print(f"kitti-like sequence 0 (seed {args.seed}): {len(scene.agents)} vehicles, "
           f"{scene.n_frames} frames; {args.sensor} {lidar.rays_per_sweep} rays/sweep "
           f"({len(pts)} returns); camera {calib.width}x{calib.height}; "
           f"{args.frames} frames x {args.repeats} passes, median")
-    print(f"{'stage':<8} {'ms/frame':>10} {'frames/s':>9}")
-    for name, med, fps in rows:
-        print(f"{name:<8} {med * 1e3:>10.1f} {fps:>9.2f}")
+    print_table(("stage", "ms/frame", "frames/s"), rows)
 
 
 if __name__ == "__main__":

@@ -4,17 +4,19 @@
   updated in one ``step`` call per frame (target >= 1000 /s on 2 cores);
 * latency: one track, one ``step`` per frame, median milliseconds (target <= 2 ms).
 
-Run: ``python benchmarks/bm_streaming.py [--threads 2] [--repeats 5]``
+Warm-up, then the median and spread (min-max) of ``--repeats`` passes; fixed seeds (``--seed``:
+the network's initial weights and the point clouds).
+
+Run: ``python benchmarks/bm_streaming.py [--threads 2] [--repeats 5] [--seed 0]``
 """
 
 from __future__ import annotations
 
-import argparse
 import statistics
-import time
 
 import numpy as np
 import torch
+from _bench import bench_parser, print_table, time_it
 
 from seqshape.model import MODEL_PRESETS, Estimator, ShapePoseNet
 
@@ -30,55 +32,49 @@ def make_frames(n_tracks: int, n_frames: int, seed: int = 0) -> list[list[np.nda
 def throughput(est: Estimator, frames, repeats: int) -> list[float]:
     ids = [f"track{i}" for i in range(len(frames[0]))]
     est.step(ids, frames[0])  # warm-up
-    rates = []
-    for _ in range(repeats):
-        est.reset()
-        t0 = time.perf_counter()
+
+    def one_pass() -> None:
         for pts in frames:
             est.step(ids, pts)
-        rates.append(len(ids) * len(frames) / (time.perf_counter() - t0))
-    return rates
+
+    return time_it(one_pass, repeats, warmup=0, setup=est.reset).rates(len(ids) * len(frames))
 
 
 def latency_ms(est: Estimator, frames, repeats: int) -> list[float]:
     single = [f[0] for f in frames]
     for p in single[:5]:
         est.step(["solo"], [p])  # warm-up
-    out = []
-    for _ in range(repeats):
-        est.reset()
-        times = []
-        for p in single:
-            t0 = time.perf_counter()
-            est.step(["solo"], [p])
-            times.append(time.perf_counter() - t0)
-        out.append(1e3 * statistics.median(times))
-    return out
+    return [_latency_pass_ms(est, single) for _ in range(repeats)]
+
+
+def _latency_pass_ms(est: Estimator, single: list[np.ndarray]) -> float:
+    """Median ms of one ``step`` per cloud of ``single``, from a reset estimator."""
+    est.reset()
+    clouds = iter(single)
+    return 1e3 * time_it(lambda: est.step(["solo"], [next(clouds)]), len(single),
+                         warmup=0).median
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser(__doc__, repeats=5)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--tracks", type=int, default=100)
     ap.add_argument("--frames", type=int, default=20)
-    ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args()
-    torch.manual_seed(0)
+    torch.manual_seed(args.seed)
     print(f"torch {torch.__version__}, threads {args.threads}, small preset (untrained)")
     rows = []
     for kind in ("sequential", "baseline"):
         est = Estimator(ShapePoseNet(MODEL_PRESETS["small"], recurrent=kind == "sequential"),
                         threads=args.threads)
-        frames = make_frames(args.tracks, args.frames)
+        frames = make_frames(args.tracks, args.frames, seed=args.seed)
         rates = throughput(est, frames, args.repeats)
-        lat = latency_ms(est, make_frames(1, 100, seed=1), args.repeats)
-        rows.append((kind, statistics.median(rates), min(rates), max(rates),
-                     statistics.median(lat)))
-    print(f"\n| model | updates/s ({args.tracks} tracks), median | min | max "
-          f"| 1-track latency ms, median |")
-    print("|---|---|---|---|---|")
-    for kind, med, lo, hi, lat in rows:
-        print(f"| {kind} | {med:.0f} | {lo:.0f} | {hi:.0f} | {lat:.2f} |")
+        lat = latency_ms(est, make_frames(1, 100, seed=args.seed + 1), args.repeats)
+        rows.append((kind, f"{statistics.median(rates):.0f}", f"{min(rates):.0f}",
+                     f"{max(rates):.0f}", f"{statistics.median(lat):.2f}"))
+    print()
+    print_table(("model", f"updates/s ({args.tracks} tracks), median", "min", "max",
+                 "1-track latency ms, median"), rows)
     print("\ntargets: >= 1000 updates/s, <= 2 ms")
 
 

@@ -2,22 +2,22 @@
 
 Frames = window frames pushed through the network per optimiser step (batch_size * window).
 Uses ``--data`` if given (e.g. the paper preset dataset), else a generated dataset of box
-tracks. Runs the real trainer step (data windows, forward, losses, backward, Adam).
+tracks (``--seed``). Runs the real trainer step (data windows, forward, losses, backward, Adam):
+two warm-up steps, then ``--repeats`` timed runs of ``--steps`` steps; median and min-max.
 
 Run: ``python benchmarks/bm_train.py [--data DIR] [--threads 1] [--steps 8] [--repeats 3]``
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
+from _bench import bench_parser, print_table, time_it
 
 from seqshape.data import Track, write_dataset
 from seqshape.data.windows import WindowDataset
@@ -61,36 +61,36 @@ def measure(data: Path, kind: str, stage: int, threads: int, steps: int, repeats
         tr.model.train()
         for _ in range(2):  # warm-up (and fill the track cache)
             tr._train_step(opt, wds, stage)
-        rates = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
+
+        def run() -> None:
             for _ in range(steps):
                 tr._train_step(opt, wds, stage)
                 tr.state["global_step"] += 1  # next batch, as the trainer does
-            rates.append(steps * cfg.batch_size * cfg.window / (time.perf_counter() - t0))
-    return rates
+
+        return time_it(run, repeats, warmup=0).rates(steps * cfg.batch_size * cfg.window)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = bench_parser(__doc__, repeats=3)
     ap.add_argument("--data", type=Path, default=None)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--steps", type=int, default=8)
-    ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        data = args.data or box_dataset(Path(tmp) / "boxes").path
+        data = args.data or box_dataset(Path(tmp) / "boxes", seed=args.seed).path
         cfg = get_train_config("small")
         print(f"torch {torch.__version__}, threads {args.threads}, data {data}, "
               f"{cfg.batch_size} windows x {cfg.window} frames per step")
-        print("\n| model | stage | frames/s median | min | max | s/step |")
-        print("|---|---|---|---|---|---|")
+        rows = []
         for kind in ("sequential", "baseline"):
             for stage, name in ((0, "1 shape"), (1, "2 pose"), (2, "3 joint")):
                 r = measure(data, kind, stage, args.threads, args.steps, args.repeats)
                 med = statistics.median(r)
-                print(f"| {kind} | {name} | {med:.0f} | {min(r):.0f} | {max(r):.0f} "
-                      f"| {cfg.batch_size * cfg.window / med:.2f} |")
+                print(f"  {kind} stage {name}: {med:.0f} frames/s", flush=True)
+                rows.append((kind, name, f"{med:.0f}", f"{min(r):.0f}", f"{max(r):.0f}",
+                             f"{cfg.batch_size * cfg.window / med:.2f}"))
+    print()
+    print_table(("model", "stage", "frames/s median", "min", "max", "s/step"), rows, "llrrrr")
 
 
 if __name__ == "__main__":
