@@ -4,7 +4,9 @@
         [--sequences 2] [--frames 40] [--repeats 3] [--modes ...] [--refine ...]
 
 Generates (or reuses) a kitti-like scene set (``seqshape scenes --preset kitti-like``, fixed
-seed, default degraded 2D masks), labels every sequence with every mode / refinement, scores
+seed, default degraded 2D masks), labels the first ``--sequences`` sequences (their first
+``--frames`` frames; the sequence is labelled as if it ended there, and only those frames'
+reference images are scored) with every mode / refinement, scores
 the labels with the evaluator (% miss, mIoU, mIoU with misses = 0; amodal, and visible masks
 too) and times the labelling (frames/s: a warm-up run, then the median of ``--repeats`` timed
 runs on the first sequence). Rows:
@@ -32,12 +34,14 @@ from _bench import bench_parser, print_table, time_it
 os.environ.setdefault("SEQSHAPE_PROGRESS", "0")
 
 from seqshape.amodal.evaluate import evaluate_files, summarise  # noqa: E402
+from seqshape.amodal.kins import read_kins, write_kins  # noqa: E402
 from seqshape.amodal.labeler import (  # noqa: E402
     LabelConfig,
     clouds_by_frame,
     gt_track_inputs,
     label_sequence,
     load_estimator,
+    open_sequence,
     render_labels,
     write_labels,
 )
@@ -59,13 +63,13 @@ def ensure_scenes(path: Path | None, sequences: int, frames: int, seed: int) -> 
     return path
 
 
-def oracle_labels(root: Path, sequence: str, cfg: LabelConfig):
+def oracle_labels(root: Path, sequence: str, cfg: LabelConfig, max_frames: int | None = None):
     """Labels from the true meshes at the true poses (upper bound of the mask steps)."""
     from seqshape.amodal.accumulate import place_in_frames
     from seqshape.sim.scene_writer import load_scene
     from seqshape.vehicles.surface import sample_outer_surface
 
-    seq = KittiTrackingSequence(root, sequence)
+    seq = open_sequence(root, sequence, max_frames)
     scene, _ = load_scene(root, sequence)
     by_tid = {a.track_id: k for k, a in enumerate(scene.agents)}
     _, inputs = gt_track_inputs(seq, cfg.types)
@@ -76,41 +80,75 @@ def oracle_labels(root: Path, sequence: str, cfg: LabelConfig):
     return render_labels(seq, clouds_by_frame(inputs, clouds), cfg)
 
 
-def run_method(root, sequences, name, cfg, estimator, out_dir):
+def label_once(root, sequence, name, cfg, estimator, max_frames):
+    """The :class:`LabelResult` of one method on one sequence (first ``max_frames`` frames)."""
+    if name == "oracle-shape":
+        return oracle_labels(root, sequence, cfg, max_frames)
+    return label_sequence(root, sequence, cfg, estimator, max_frames=max_frames)
+
+
+def reference_subset(root: Path, sequence: str, max_frames: int | None, out_dir: Path) -> Path:
+    """The reference KINS file of ``sequence``, cut to its first ``max_frames`` frames.
+
+    The cut copy is written under ``out_dir/reference/amodal`` (the full file when None).
+    """
+    full = root / "amodal" / f"{sequence}.json"
+    if max_frames is None:
+        return full
+    frames = set(open_sequence(root, sequence, max_frames).frames)
+    doc = read_kins(full)
+    images = [img for img in doc["images"] if int(img.get("frame", -1)) in frames]
+    ids = {img["id"] for img in images}
+    path = out_dir / "reference" / "amodal" / f"{sequence}.json"
+    write_kins(path, images, [a for a in doc["annotations"] if a["image_id"] in ids],
+               doc.get("categories"))
+    return path
+
+
+def run_method(root, sequences, name, cfg, estimator, out_dir, max_frames=None):
     """Label every sequence; returns (amodal metrics, visible metrics, frames, seconds)."""
     pairs, frames, secs = [], 0, 0.0
     for s in sequences:
         t0 = time.perf_counter()
-        res = (oracle_labels(root, s, cfg) if name == "oracle-shape"
-               else label_sequence(root, s, cfg, estimator))
+        res = label_once(root, s, name, cfg, estimator, max_frames)
         secs += time.perf_counter() - t0
         frames += len(res.images)
-        path = out_dir / name / f"{s}.json"
+        path = out_dir / name.replace("/", "_") / f"{s}.json"
         write_labels(path, res)
-        pairs.append((path, root / "amodal" / f"{s}.json"))
+        pairs.append((path, reference_subset(root, s, max_frames, out_dir)))
     amodal = summarise(*evaluate_files(pairs))
     visible = summarise(*evaluate_files(pairs, segm="i_segm"))
     return amodal, visible, frames, secs
 
 
-def time_method(root, sequence, name, cfg, estimator, repeats):
+def time_method(root, sequence, name, cfg, estimator, repeats, max_frames=None):
     """Frames/s of labelling ``sequence``: (median, (min, max)) over ``repeats`` timed runs.
 
     No warm-up here: :func:`run_method` has just labelled the same sequence.
     """
-    timing = time_it(lambda: (oracle_labels(root, sequence, cfg) if name == "oracle-shape"
-                              else label_sequence(root, sequence, cfg, estimator)),
+    timing = time_it(lambda: label_once(root, sequence, name, cfg, estimator, max_frames),
                      repeats, warmup=0)
     rates = timing.rates(len(timing.result.images))
     return statistics.median(rates), (min(rates), max(rates))
+
+
+def write_results(out_dir: Path, root: Path, note: str, args, rows: list[dict]) -> None:
+    """``out_dir/results.json`` with the rows so far (rewritten after every method)."""
+    from seqshape._io import atomic_write_text
+
+    atomic_write_text(out_dir / "results.json", json.dumps(
+        {"scenes": str(root), "note": note, "order": args.order, "sequences": args.sequences,
+         "frames": args.frames, "rows": rows}, indent=2))
 
 
 def main(argv=None) -> int:
     p = bench_parser(__doc__, repeats=3, min_repeats=0,
                      repeats_help="timed runs for frames/s (0: skip)")
     p.add_argument("--scenes", type=Path, default=None, help="scene set (generated if absent)")
-    p.add_argument("--sequences", type=int, default=2)
-    p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--sequences", type=int, default=2,
+                   help="evaluate the first N sequences (and generate N when absent)")
+    p.add_argument("--frames", type=int, default=40,
+                   help="evaluate the first F frames of each (and generate F when absent)")
     p.add_argument("--checkpoint", default="pretrained")
     p.add_argument("--modes", nargs="+",
                    default=["oracle-shape", "gt-accumulation", "sc-gt", "sc-seg"])
@@ -120,7 +158,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     root = ensure_scenes(args.scenes, args.sequences, args.frames, args.seed)
-    sequences = KittiTrackingSequence.sequences(root)
+    sequences = KittiTrackingSequence.sequences(root)[:args.sequences]
     out_dir = args.out or Path(tempfile.mkdtemp(prefix="bm_labelling_"))
     estimator, note = None, ""
     if any(m.startswith("sc-") for m in args.modes):
@@ -129,8 +167,10 @@ def main(argv=None) -> int:
             note = f"checkpoint: {args.checkpoint}"
         except Exception as exc:  # report and go on with the modes that need no weights
             note = f"sc-* rows skipped: cannot load {args.checkpoint!r} ({exc})"
-    print(f"scenes: {root} ({len(sequences)} sequences); {note}; occlusion order {args.order}")
+    print(f"scenes: {root} ({len(sequences)} sequences x first {args.frames} frames); {note}; "
+          f"occlusion order {args.order}", flush=True)
     rows = []
+    out_dir.mkdir(parents=True, exist_ok=True)
     for mode in args.modes:
         if mode.startswith("sc-") and estimator is None:
             continue
@@ -138,15 +178,17 @@ def main(argv=None) -> int:
             cfg = LabelConfig(mode="gt-accumulation" if mode == "oracle-shape" else mode,
                               refine=refine, order=args.order, checkpoint=args.checkpoint)
             name = mode if not mode.startswith("sc-") else f"{mode}/{refine}"
-            a, v, n, secs = run_method(root, sequences, name.replace("/", "_"), cfg, estimator,
-                                       out_dir)
+            a, v, n, secs = run_method(root, sequences, name, cfg, estimator, out_dir,
+                                       args.frames)
             fps, spread = (n / secs, (n / secs, n / secs))
             if args.repeats > 0:
-                fps, spread = time_method(root, sequences[0], mode, cfg, estimator, args.repeats)
+                fps, spread = time_method(root, sequences[0], mode, cfg, estimator, args.repeats,
+                                          args.frames)
             rows.append({"method": name, "amodal": a, "visible": v, "fps": fps,
                          "fps_range": spread, "frames": n})
             print(f"  {name}: miss {a['miss_pct']:.2f}%  mIoU {a['miou']:.3f}  "
-                  f"visible mIoU {v['miou']:.3f}  {fps:.2f} frames/s", flush=True)
+                  f"visible mIoU {v['miou']:.3f}  {fps:.2f} frames/s ({n} frames)", flush=True)
+            write_results(out_dir, root, note, args, rows)
     print()
     print_table(("Method", "% Miss", "mIoU", "mIoU (misses = 0)", "visible mIoU",
                  "unmatched preds", "frames/s (median, min-max)"),
@@ -157,9 +199,7 @@ def main(argv=None) -> int:
                  for r in rows])
     instances = rows[0]["amodal"]["n"] if rows else 0
     print(f"\n{instances} reference instances, {rows[0]['frames'] if rows else 0} frames; {note}")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "results.json").write_text(json.dumps(
-        {"scenes": str(root), "note": note, "order": args.order, "rows": rows}, indent=2))
+    write_results(out_dir, root, note, args, rows)
     print(f"labels and results.json in {out_dir}")
     return 0
 

@@ -5,7 +5,9 @@ the image. The projected points are a dense but irregular sample of the silhouet
 shape (the union of the triangles of the alpha complex) follows concavities that the convex
 hull would fill, and it does not bridge gaps wider than the chosen radius.
 
-Construction: the Delaunay triangulation of the points (``scipy.spatial.Delaunay``); a triangle
+Construction: the Delaunay triangulation of the points (OpenCV's ``Subdiv2D``, about 4x faster
+than ``scipy.spatial.Delaunay`` here; its bounding triangle is placed far outside the points so
+that only huge hull slivers, which the alpha test rejects anyway, can differ); a triangle
 is kept when its circumradius is below ``1 / alpha`` pixels; the kept triangles are filled with
 ``cv2.fillPoly`` at 1/16-pixel precision. Pixel ``(row v, column u)`` is the one whose centre is
 at image coordinates ``(u, v)`` (the KITTI projection convention).
@@ -39,6 +41,31 @@ MIN_RADIUS_PX = 1.5
 GRID_PX = 0.25  # projected points are snapped to this lattice (px) before triangulating
 _SHIFT = 4  # cv2 fixed-point bits: vertices at 1/16 px
 _FAR = 4.0  # coordinates clipped to [-_FAR * size, (1 + _FAR) * size] before rasterising
+_PAD = 10.0  # Subdiv2D rectangle: the points' box grown by this many times its extent
+
+
+def delaunay_triangles(pts: np.ndarray) -> np.ndarray:
+    """Delaunay triangles of distinct points ``pts (N, 2)`` as vertices ``(T, 3, 2)`` float64.
+
+    OpenCV ``Subdiv2D`` (float32 coordinates: exact for points on the :data:`GRID_PX`
+    lattice within +-2**21 px); triangles touching its virtual outer vertices are dropped.
+    Empty ``(0, 3, 2)`` for collinear points.
+    """
+    lo0, hi0 = np.floor(pts.min(0)) - 2, np.ceil(pts.max(0)) + 2
+    pad = _PAD * float(np.max(hi0 - lo0))
+    lo, hi = lo0 - pad, hi0 + pad
+    sub = cv2.Subdiv2D((int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1])))
+    sub.insert(pts.astype(np.float32))
+    tri = np.asarray(sub.getTriangleList(), dtype=np.float64).reshape(-1, 3, 2)
+    return tri[np.all((tri >= lo0) & (tri <= hi0), axis=(1, 2))]
+
+
+def delaunay_triangles_scipy(pts: np.ndarray) -> np.ndarray:
+    """Reference of :func:`delaunay_triangles` with ``scipy.spatial.Delaunay`` (slower)."""
+    try:
+        return pts[Delaunay(pts).simplices]
+    except QhullError:  # collinear (or numerically so)
+        return np.zeros((0, 3, 2))
 
 
 def _dedup(uv: np.ndarray, grid: float) -> np.ndarray:
@@ -54,21 +81,23 @@ def _dedup(uv: np.ndarray, grid: float) -> np.ndarray:
     return q[first].astype(np.float64) * grid + np.round(uv.min(0) / grid) * grid
 
 
-def auto_alpha_radius(uv: np.ndarray, radii: np.ndarray | None = None) -> float:
+def auto_alpha_radius(uv: np.ndarray, radii: np.ndarray | None = None,
+                     distinct: bool = False) -> float:
     """The automatic circumradius threshold (pixels) for points ``uv (N, 2)`` (module doc).
 
-    ``radii`` are the circumradii of the points' Delaunay triangles when already known.
+    ``radii`` are the circumradii of the points' Delaunay triangles when already known;
+    ``distinct``: the points are known to be pairwise distinct (skips deduplication).
     """
-    uv = _dedup(np.asarray(uv, dtype=np.float64).reshape(-1, 2), 0.0)
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if not distinct:
+        uv = _dedup(uv, 0.0)
     if len(uv) < 2:
         return MIN_RADIUS_PX
-    d, _ = cKDTree(uv).query(uv, k=2)  # (N, 2); column 0 is the point itself
+    d, _ = cKDTree(uv, balanced_tree=False).query(uv, k=2)  # (N, 2); col 0: the point itself
     r = max(NN_FACTOR * np.quantile(d[:, 1], 0.9), MIN_RADIUS_PX)
     if radii is None and len(uv) >= 3:
-        try:
-            radii = circumradii(uv[Delaunay(uv).simplices])
-        except QhullError:
-            radii = None
+        tri = delaunay_triangles(uv)
+        radii = circumradii(tri) if len(tri) else None
     if radii is not None and np.isfinite(radii).any():
         r = max(r, TRI_FACTOR * float(np.median(radii[np.isfinite(radii)])))
     return float(r)
@@ -134,15 +163,13 @@ def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None
     if len(pts) < 3:
         _draw_degenerate(mask, pts, (h, w))
         return mask.astype(bool)
-    try:
-        tri = Delaunay(pts)
-    except QhullError:  # collinear (or numerically so)
+    verts = delaunay_triangles(pts)  # (T, 3, 2)
+    if len(verts) == 0:  # collinear
         _draw_degenerate(mask, pts, (h, w))
         return mask.astype(bool)
-    verts = pts[tri.simplices]  # (T, 3, 2)
     radii = circumradii(verts)  # (T,)
     if alpha is None:
-        radius = auto_alpha_radius(pts, radii)
+        radius = auto_alpha_radius(pts, radii, distinct=True)
     else:
         radius = np.inf if alpha == 0 else 1.0 / alpha
     keep = radii < radius

@@ -119,11 +119,33 @@ def clouds_by_frame(inputs, clouds_per_track) -> dict[int, dict[str, tuple]]:
     return out
 
 
-def label_sequence(root, sequence, cfg: LabelConfig, estimator=None) -> LabelResult:
-    """Amodal labels of every frame of ``ROOT/.../SSSS`` (module doc); nothing is written."""
+def open_sequence(root, sequence, max_frames: int | None = None):
+    """The :class:`KittiTrackingSequence`, restricted to its first ``max_frames`` frames.
+
+    The restriction drops the later frames from ``frames``, ``labels`` and ``labels_by_frame``,
+    so everything downstream (track extraction, segmentation, masks) sees a shorter sequence:
+    a track is estimated from its first frame within the subset.
+    """
     from seqshape.data.kitti import KittiTrackingSequence
 
     seq = KittiTrackingSequence(root, sequence)
+    if max_frames is not None:
+        if max_frames < 1:
+            raise ConfigError(f"max_frames must be >= 1, got {max_frames}")
+        seq.frames = seq.frames[:max_frames]
+        keep = set(seq.frames)
+        seq.labels = [lab for lab in seq.labels if lab.frame in keep]
+        seq.labels_by_frame = {f: v for f, v in seq.labels_by_frame.items() if f in keep}
+    return seq
+
+
+def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
+                   max_frames: int | None = None) -> LabelResult:
+    """Amodal labels of every frame of ``ROOT/.../SSSS`` (module doc); nothing is written.
+
+    ``max_frames``: label only the first that many frames (:func:`open_sequence`).
+    """
+    seq = open_sequence(root, sequence, max_frames)
     if not seq.frames:
         raise DataError(Path(root), f"sequence {seq.sequence}: no frames found")
     timings: dict[str, float] = {}
