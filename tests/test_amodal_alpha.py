@@ -78,3 +78,40 @@ def test_circumradius_and_auto_radius():
     rings = np.stack(np.meshgrid(np.arange(0, 100, 0.5), np.arange(0, 50, 5.0)), -1)
     r = auto_alpha_radius(rings.reshape(-1, 2))  # scan lines: 0.5 px along, 5 px across
     assert r > 5.0 and r < 10.0
+
+
+def _reference_mask(uv, size):
+    """The alpha mask with scipy's Delaunay (the implementation before Subdiv2D)."""
+    import cv2
+
+    from seqshape.amodal import alpha as A
+
+    pts = A._dedup(np.asarray(uv, float), A.GRID_PX)
+    verts = A.delaunay_triangles_scipy(pts)
+    radii = A.circumradii(verts)
+    keep = radii < A.auto_alpha_radius(pts, radii, distinct=True)
+    mask = np.zeros(size, np.uint8)
+    cv2.fillPoly(mask, list(A._to_fixed(verts[keep].reshape(-1, 2), size).reshape(-1, 3, 2)), 1,
+                 lineType=cv2.LINE_8, shift=A._SHIFT)
+    fixed = (A._to_fixed(pts, size) + (1 << (A._SHIFT - 1))) >> A._SHIFT
+    ok = (fixed[:, 0] >= 0) & (fixed[:, 0] < size[1]) & (fixed[:, 1] >= 0) & (fixed[:, 1] < size[0])
+    mask[fixed[ok, 1], fixed[ok, 0]] = 1
+    return mask.astype(bool)
+
+
+def test_fast_triangulation_matches_scipy_reference():
+    """Subdiv2D-based masks equal the scipy-Delaunay ones (random blobs, rings, off-image)."""
+    from seqshape.amodal.alpha import alpha_shape_mask
+
+    rng = np.random.default_rng(3)
+    size = (120, 200)
+    for trial in range(12):
+        n = int(rng.integers(20, 1500))
+        if trial % 3 == 0:  # annulus: concave hole
+            ang, rad = rng.uniform(0, 2 * np.pi, n), rng.uniform(20, 40, n)
+            uv = np.c_[100 + rad * np.cos(ang), 60 + rad * np.sin(ang)]
+        elif trial % 3 == 1:  # scan-line-like rows, partly outside the image
+            uv = np.c_[rng.uniform(-30, 230, n), rng.integers(0, 12, n) * 6.0 + 40]
+        else:
+            uv = rng.normal([100, 60], [30, 15], (n, 2))
+        assert np.array_equal(alpha_shape_mask(uv, size), _reference_mask(uv, size)), trial

@@ -128,6 +128,25 @@ def bbox_of_mask(mask) -> list[float]:
 # ----------------------------------------------------------------------------- occlusion
 
 
+def _mask_overlaps(masks: Sequence[np.ndarray]) -> np.ndarray:
+    """``(K, K)`` bool: do masks i and j share a pixel (compared inside their common box)."""
+    k = len(masks)
+    boxes = []
+    for m in masks:
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        boxes.append((rows[0], rows[-1] + 1, cols[0], cols[-1] + 1) if len(rows) else None)
+    out = np.zeros((k, k), dtype=bool)
+    for i in range(k):
+        for j in range(i + 1, k):
+            if boxes[i] is None or boxes[j] is None:
+                continue
+            r0, r1 = max(boxes[i][0], boxes[j][0]), min(boxes[i][1], boxes[j][1])
+            c0, c1 = max(boxes[i][2], boxes[j][2]), min(boxes[i][3], boxes[j][3])
+            if r0 < r1 and c0 < c1 and np.any(masks[i][r0:r1, c0:c1] & masks[j][r0:r1, c0:c1]):
+                out[i, j] = out[j, i] = True
+    return out
+
+
 def occlusion_order(depths: Sequence[float], amodal_masks: Sequence[np.ndarray]
                     ) -> tuple[list[int], list[int]]:
     """KINS ``(oco_id, ico_id)`` per instance of one image (definition in the module doc).
@@ -139,8 +158,7 @@ def occlusion_order(depths: Sequence[float], amodal_masks: Sequence[np.ndarray]
         raise ValueError(f"{k} depths but {len(amodal_masks)} masks")
     if k == 0:
         return [], []
-    flat = np.stack([np.asarray(m, dtype=bool).ravel() for m in amodal_masks]).astype(np.float32)
-    overlap = (flat @ flat.T) > 0  # (K, K)
+    overlap = _mask_overlaps([np.asarray(m, dtype=bool) for m in amodal_masks])
     parent = list(range(k))
 
     def find(i: int) -> int:
