@@ -73,7 +73,9 @@ def mask_to_rle(mask) -> dict:
     mask = np.asarray(mask)
     if mask.ndim != 2:
         raise ValueError(f"mask must be 2-D (H, W), got shape {mask.shape}")
-    rle = _mask_api().encode(np.asfortranarray(mask.astype(np.uint8)))
+    # bool and uint8 share the item size: view instead of a converted copy
+    data = mask.view(np.uint8) if mask.dtype == bool else mask.astype(np.uint8)
+    rle = _mask_api().encode(np.asfortranarray(data))
     return {"size": [int(rle["size"][0]), int(rle["size"][1])],
             "counts": rle["counts"].decode("ascii")}
 
