@@ -176,3 +176,31 @@ def test_bad_mode_and_missing_instances(kitti, tmp_path):
     with pytest.raises(DataError, match="instance"):
         label_sequence(kitti, "0000", LabelConfig(mode="sc-seg", instances=str(tmp_path / "x")),
                        OracleEstimator())
+
+
+def test_max_frames_equals_a_shorter_sequence(kitti, tmp_path):
+    """Labelling the first F frames == labelling a copy of the sequence that ends there."""
+    import shutil
+
+    from seqshape.data.kitti import read_labels
+    from seqshape.errors import ConfigError
+
+    cut = 3
+    short = tmp_path / "short"
+    shutil.copytree(kitti, short)
+    for t in range(cut, N_FRAMES):
+        (short / "velodyne" / "0000" / f"{t:06d}.bin").unlink()
+    rows = [lab for lab in read_labels(short / "label_02" / "0000.txt") if lab.frame < cut]
+    write_kitti(short / "label_02" / "0000.txt", rows)
+    cfg = LabelConfig(mode="gt-accumulation")
+    a = label_sequence(kitti, "0000", cfg, max_frames=cut)
+    b = label_sequence(short, "0000", cfg)
+    assert [img["frame"] for img in a.images] == list(range(cut)) == [
+        img["frame"] for img in b.images]
+    assert len(a.annotations) == len(b.annotations) > 0
+    for x, y in zip(a.annotations, b.annotations, strict=True):
+        assert x["a_segm"] == y["a_segm"] and x["i_segm"] == y["i_segm"]
+    full = label_sequence(kitti, "0000", cfg)  # more frames accumulate a different shape
+    assert len(full.images) == N_FRAMES
+    with pytest.raises(ConfigError):
+        label_sequence(kitti, "0000", cfg, max_frames=0)

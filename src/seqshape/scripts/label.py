@@ -30,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="alpha-shape alpha (1/pixels); default from the point spacing")
     parser.add_argument("--instances", type=Path, default=None,
                         help="sc-seg: COCO instance masks (default KITTI/instances_2d/SSSS.json)")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="F",
+                        help="label only the first F frames (the sequence as if it ended there)")
     parser.add_argument("--overlays", type=Path, default=None, help="write overlay PNGs here")
     parser.add_argument("--export-tracks", type=Path, default=None, metavar="DIR",
                         help="write the sequence's GT-cropped tracks as a track dataset "
@@ -42,7 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from seqshape.amodal.labeler import LabelConfig, label_sequence, write_labels, write_overlays
+    from seqshape.amodal.labeler import (
+        LabelConfig,
+        label_sequence,
+        open_sequence,
+        write_labels,
+        write_overlays,
+    )
     from seqshape.data.kitti import KittiTrackingSequence, extract_tracks
     from seqshape.errors import ConfigError, DataError
 
@@ -68,13 +76,13 @@ def run(args: argparse.Namespace) -> int:
     cfg = LabelConfig(mode=args.mode, checkpoint=args.checkpoint, refine=args.refine,
                       order=args.order, alpha=args.alpha,
                       instances=str(args.instances) if args.instances else None)
-    result = label_sequence(args.kitti, args.sequence, cfg)
+    result = label_sequence(args.kitti, args.sequence, cfg, max_frames=args.max_frames)
     write_labels(args.out, result)
     t = result.timings
     print(f"{args.mode}: {len(result.annotations)} instances in {t['frames']} frames, "
           f"{t['frames'] / max(t['total'], 1e-9):.2f} frames/s -> {args.out}")
     if args.overlays is not None:
-        seq = KittiTrackingSequence(args.kitti, args.sequence)
+        seq = open_sequence(args.kitti, args.sequence, args.max_frames)
         paths = write_overlays(seq, result, args.overlays)
         print(f"wrote {len(paths)} overlays to {args.overlays}")
     return 0
