@@ -193,7 +193,7 @@ def kins_annotation(ann_id: int, image_id: int, category_id: int, amodal_mask, v
     ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
            "a_segm": mask_to_rle(a), "i_segm": mask_to_rle(v),
            "a_bbox": bbox_of_mask(a), "i_bbox": bbox_of_mask(v),
-           "a_area": int(a.sum()), "i_area": int(v.sum()),
+           "a_area": int(np.count_nonzero(a)), "i_area": int(np.count_nonzero(v)),
            "oco_id": int(oco_id), "ico_id": int(ico_id), "iscrowd": 0}
     if track_id is not None:
         ann["track_id"] = int(track_id)
@@ -205,7 +205,7 @@ def coco_annotation(ann_id: int, image_id: int, category_id: int, mask, score: f
     """One COCO instance annotation dict (RLE ``segmentation``) from a boolean (H, W) mask."""
     m = np.asarray(mask, dtype=bool)
     ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
-           "segmentation": mask_to_rle(m), "bbox": bbox_of_mask(m), "area": int(m.sum()),
+           "segmentation": mask_to_rle(m), "bbox": bbox_of_mask(m), "area": int(np.count_nonzero(m)),
            "score": float(score), "iscrowd": 0}
     if track_id is not None:
         ann["track_id"] = int(track_id)

@@ -189,7 +189,7 @@ def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig) 
         items = by_frame.get(frame, {})
         insts = frame_masks({tid: c for tid, (c, _) in items.items()}, calib, size,
                             alpha=cfg.alpha, order=cfg.order)
-        insts = [m for m in insts if m.visible.sum() >= cfg.min_visible_area]
+        insts = [m for m in insts if np.count_nonzero(m.visible) >= cfg.min_visible_area]
         masks[frame] = insts
         oco, ico = occlusion_order([m.order for m in insts], [m.amodal for m in insts])
         for m, o, i in zip(insts, oco, ico, strict=True):
