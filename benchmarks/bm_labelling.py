@@ -154,6 +154,8 @@ def main(argv=None) -> int:
                    default=["oracle-shape", "gt-accumulation", "sc-gt", "sc-seg"])
     p.add_argument("--refine", nargs="+", default=list(REFINE_MODES), choices=REFINE_MODES)
     p.add_argument("--order", default="pixel", choices=["pixel", "median"])
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads for the estimator (default 1, as `seqshape label`)")
     p.add_argument("--out", type=Path, default=None, help="labels + results.json here")
     args = p.parse_args(argv)
 
@@ -162,6 +164,9 @@ def main(argv=None) -> int:
     out_dir = args.out or Path(tempfile.mkdtemp(prefix="bm_labelling_"))
     estimator, note = None, ""
     if any(m.startswith("sc-") for m in args.modes):
+        import torch
+
+        torch.set_num_threads(args.threads)
         try:
             estimator = load_estimator(args.checkpoint)
             note = f"checkpoint: {args.checkpoint}"

@@ -73,3 +73,40 @@ def test_association_crossing_tracks():
     late = [[Detection(0, np.zeros(3), masks[0])], [], [], [], [], [],
             [Detection(6, np.zeros(3), masks[0])]]
     assert associate(late, max_age=2) == [[0], [], [], [], [], [], [1]]
+
+
+def _ransac_loop(cand, rng, iterations, threshold, max_tilt_deg):
+    """The one-hypothesis-at-a-time RANSAC that _ransac_plane vectorises (reference)."""
+    best, best_count = None, 0
+    cos_tilt = np.cos(np.radians(max_tilt_deg))
+    for _ in range(iterations):
+        tri = cand[rng.choice(len(cand), 3, replace=False)]
+        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+        norm = np.linalg.norm(n)
+        if norm < 1e-9 or abs(n[2]) / norm < cos_tilt:
+            continue
+        n = n / norm * np.sign(n[2])
+        count = int(np.sum(np.abs(cand @ n - n @ tri[0]) < threshold))
+        if count > best_count:
+            best, best_count = (n, float(-n @ tri[0])), count
+    return best, best_count
+
+
+def test_vectorised_ransac_equals_loop():
+    from seqshape.amodal.diffusion import _ransac_plane
+
+    gen = np.random.default_rng(5)
+    for trial in range(6):
+        ground = np.c_[gen.uniform(-20, 20, (400, 2)), gen.normal(-1.7, 0.05, 400)]
+        clutter = gen.uniform([-20, -20, -2], [20, 20, 1], (int(gen.integers(50, 600)), 3))
+        cand = np.vstack([ground, clutter])
+        if trial == 5:  # only steep walls: no valid hypothesis
+            cand = np.c_[gen.uniform(-1, 1, 300), np.full(300, 3.0), gen.uniform(-2, 1, 300)]
+        a = _ransac_plane(cand, np.random.default_rng(trial), 60, 0.2, 10.0)
+        b = _ransac_loop(cand, np.random.default_rng(trial), 60, 0.2, 10.0)
+        assert a[1] == b[1]
+        if b[0] is None:
+            assert a[0] is None
+        else:
+            np.testing.assert_allclose(a[0][0], b[0][0], atol=1e-12)
+            assert abs(a[0][1] - b[0][1]) < 1e-9

@@ -45,6 +45,31 @@ def _fit_plane(p: np.ndarray) -> tuple[np.ndarray, float]:
     return n, float(-n @ c)
 
 
+def _ransac_plane(cand: np.ndarray, rng, iterations: int, threshold: float,
+                  max_tilt_deg: float) -> tuple[tuple[np.ndarray, float] | None, int]:
+    """The best of ``iterations`` 3-point plane hypotheses on ``cand (M, 3)``: ``((n, d), count)``.
+
+    Hypotheses tilted more than ``max_tilt_deg`` or degenerate are skipped; the first one with
+    the most points within ``threshold`` wins (``(None, 0)`` when none is valid). All triples
+    are drawn first (the same draws, in the same order, as one at a time) and scored at once.
+    """
+    if len(cand) < 3 or iterations < 1:
+        return None, 0
+    tri = cand[np.stack([rng.choice(len(cand), 3, replace=False) for _ in range(iterations)])]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (I, 3)
+    norm = np.linalg.norm(n, axis=1)
+    ok = (norm >= 1e-9) & (np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * norm)
+    if not ok.any():
+        return None, 0
+    n, tri = n[ok] / norm[ok, None] * np.sign(n[ok, 2])[:, None], tri[ok]
+    offs = np.einsum("ij,ij->i", n, tri[:, 0])  # (I',)
+    counts = np.count_nonzero(np.abs(cand @ n.T - offs) < threshold, axis=0)  # (I',)
+    i = int(np.argmax(counts))
+    if counts[i] <= 0:
+        return None, 0
+    return (n[i], float(-offs[i])), int(counts[i])
+
+
 def ground_mask(points, threshold: float = 0.2, sensor_height: float = 1.73,
                 iterations: int = 100, max_tilt_deg: float = 10.0, low_quantile: float = 0.3,
                 seed: int = 0, max_candidates: int = 5000) -> np.ndarray:
@@ -57,19 +82,7 @@ def ground_mask(points, threshold: float = 0.2, sensor_height: float = 1.73,
     rng = np.random.default_rng(seed)
     if len(cand) > max_candidates:  # plane hypotheses are scored on a random subset
         cand = cand[rng.choice(len(cand), max_candidates, replace=False)]
-    best, best_count = None, 0
-    if len(cand) >= 3:
-        cos_tilt = np.cos(np.radians(max_tilt_deg))
-        for _ in range(iterations):
-            tri = cand[rng.choice(len(cand), 3, replace=False)]
-            n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
-            norm = np.linalg.norm(n)
-            if norm < 1e-9 or abs(n[2]) / norm < cos_tilt:
-                continue
-            n = n / norm * np.sign(n[2])
-            count = int(np.sum(np.abs(cand @ n - n @ tri[0]) < threshold))
-            if count > best_count:
-                best, best_count = (n, float(-n @ tri[0])), count
+    best, best_count = _ransac_plane(cand, rng, iterations, threshold, max_tilt_deg)
     if best is None or best_count < 3:
         log.debug("ground: no plane found, height rule at z < %.2f", -sensor_height + threshold)
         return points[:, 2] < -sensor_height + threshold

@@ -32,6 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sc-seg: COCO instance masks (default KITTI/instances_2d/SSSS.json)")
     parser.add_argument("--max-frames", type=int, default=None, metavar="F",
                         help="label only the first F frames (the sequence as if it ended there)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads for the estimator (default 1: its per-frame "
+                             "batches are small, and more threads only add overhead, a lot of "
+                             "it when the cores are busy; docs/amodal.md)")
     parser.add_argument("--overlays", type=Path, default=None, help="write overlay PNGs here")
     parser.add_argument("--export-tracks", type=Path, default=None, metavar="DIR",
                         help="write the sequence's GT-cropped tracks as a track dataset "
@@ -76,6 +80,12 @@ def run(args: argparse.Namespace) -> int:
     cfg = LabelConfig(mode=args.mode, checkpoint=args.checkpoint, refine=args.refine,
                       order=args.order, alpha=args.alpha,
                       instances=str(args.instances) if args.instances else None)
+    if args.threads < 1:
+        raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+    if args.mode != "gt-accumulation":
+        import torch
+
+        torch.set_num_threads(args.threads)
     result = label_sequence(args.kitti, args.sequence, cfg, max_frames=args.max_frames)
     write_labels(args.out, result)
     t = result.timings
