@@ -1,0 +1,58 @@
+"""The shipped weights: they load, refuse foreign files, and the sequential model beats the
+per-frame baseline on a small fixed val set of vehicles it never saw (seed 123)."""
+
+import numpy as np
+import pytest
+import torch
+
+from seqshape import Estimator
+from seqshape.data import TrackDataset
+from seqshape.errors import DataError
+from seqshape.evaluation.report import summarize
+from seqshape.evaluation.runner import evaluate_tracks
+from seqshape.sim.generate import generate_dataset, preset_config
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return {k: Estimator.from_pretrained(k, threads=1) for k in ("sequential", "baseline")}
+
+
+@pytest.fixture(scope="module")
+def summary(shipped, tmp_path_factory):
+    out = tmp_path_factory.mktemp("val123")
+    cfg = preset_config("paper", seed=123, n_vehicles=10, n_val_vehicles=5, tracks_per_vehicle=4,
+                        mean_frames=40.0, max_frames=80)
+    generate_dataset(cfg, out, workers=1)
+    val = TrackDataset(out).split("val")
+    return summarize(evaluate_tracks(shipped, val, emd_every=0, workers=0, seed=0))
+
+
+def test_shipped_weights_load_and_run(shipped):
+    assert shipped["sequential"].recurrent and not shipped["baseline"].recurrent
+    pts = np.random.default_rng(0).normal(size=(200, 3)).astype(np.float32) + [12, 3, -1]
+    for est in shipped.values():
+        (e,) = est.step(["a"], [pts])
+        assert e.complete.shape[1] == 3 and np.isfinite(e.complete).all()
+        assert e.pose.shape == (4,) and np.isfinite(e.pose).all()
+        est.reset()
+
+
+def test_sequential_beats_baseline_on_fixed_val_set(summary):
+    # The shipped small models separate clearly on heading (paper val split: 17.7 vs 32.9 deg);
+    # CD and translation are within a few percent of each other (docs/results.md), so only
+    # the rotation error is asserted, with a margin.
+    seq, base = summary["sequential"], summary["baseline"]
+    assert seq["rot_deg"] < 0.8 * base["rot_deg"]
+    assert seq["cd_cm"] < 1.2 * base["cd_cm"] and seq["trans_cm"] < 1.2 * base["trans_cm"]
+
+
+def test_foreign_and_corrupt_files_are_clear_errors(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(DataError, match="bad.pt"):
+        Estimator.from_checkpoint(bad)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(DataError, match="foreign.pt"):
+        Estimator.from_checkpoint(foreign)
