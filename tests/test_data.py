@@ -19,7 +19,7 @@ def make_track(track_id="t0", n_frames=5, split="train", seed=0, with_complete=T
 
 def assert_tracks_equal(a, b):
     assert a.track_id == b.track_id and len(a) == len(b)
-    for p, q in zip(a.points, b.points):
+    for p, q in zip(a.points, b.points, strict=True):
         assert p.dtype == q.dtype == np.float32
         np.testing.assert_array_equal(p, q)
     np.testing.assert_array_equal(a.poses, b.poses)

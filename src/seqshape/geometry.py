@@ -94,9 +94,9 @@ def box_corners(size, pose=None) -> np.ndarray:
 
     Order: the four bottom corners counter-clockwise from front-left, then the four top ones.
     """
-    l, w, h = (float(v) / 2 for v in size)
-    xy = np.array([[l, w], [-l, w], [-l, -w], [l, -w]])
-    c = np.concatenate([np.c_[xy, np.full(4, -h)], np.c_[xy, np.full(4, h)]])
+    hl, hw, hh = (float(v) / 2 for v in size)
+    xy = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
+    c = np.concatenate([np.c_[xy, np.full(4, -hh)], np.c_[xy, np.full(4, hh)]])
     return c if pose is None else canonical_to_sensor(c, pose)
 
 
