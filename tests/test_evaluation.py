@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from _shapes import box_surface as _box_surface  # noqa: I001
 
 from seqshape.data import Track, write_dataset
 from seqshape.evaluation.metrics import chamfer_distance, earth_movers_distance
@@ -17,15 +18,7 @@ SIZE = (4.5, 1.8, 1.5)
 
 
 def box_surface(n: int, seed: int, size=SIZE) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    size = np.asarray(size, dtype=np.float64)
-    ln, w, h = size
-    areas = np.array([w * h, w * h, ln * h, ln * h, ln * w, ln * w])
-    face = rng.choice(6, n, p=areas / areas.sum())
-    u = rng.uniform(-0.5, 0.5, (n, 3)) * size
-    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3, strict=True)):
-        u[face == i, axis] = sign * size[axis] / 2
-    return u.astype(np.float32)
+    return _box_surface(n, seed, size, dtype=np.float32)
 
 
 def make_track(i: int, n_frames: int = 12) -> Track:

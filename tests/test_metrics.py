@@ -6,6 +6,7 @@ import itertools
 
 import numpy as np
 import pytest
+from _shapes import box_surface  # noqa: I001
 
 from seqshape.evaluation.metrics import (
     cd_floor,
@@ -19,19 +20,6 @@ from seqshape.evaluation.metrics import (
     subsample_pair,
     translation_error,
 )
-
-
-def box_surface(n: int, seed: int, size=(4.5, 1.8, 1.5)) -> np.ndarray:
-    """Uniform samples of a box's surface (area-weighted faces), ``(n, 3)``."""
-    rng = np.random.default_rng(seed)
-    size = np.asarray(size, dtype=np.float64)
-    ln, w, h = size
-    areas = np.array([w * h, w * h, ln * h, ln * h, ln * w, ln * w])
-    face = rng.choice(6, n, p=areas / areas.sum())
-    u = rng.uniform(-0.5, 0.5, (n, 3)) * size
-    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3, strict=True)):
-        u[face == i, axis] = sign * size[axis] / 2
-    return u
 
 
 def chamfer_brute(a, b) -> float:
