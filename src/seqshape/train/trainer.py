@@ -279,7 +279,7 @@ class Trainer:
         return out
 
     def _run_stage(self, stage: int) -> None:
-        c, sc = self.cfg, self.cfg.stages[stage]
+        c = self.cfg
         opt = torch.optim.Adam(self._stage_groups(stage))
         if self.state["optimizer"] is not None:
             opt.load_state_dict(self.state["optimizer"])
@@ -287,7 +287,8 @@ class Trainer:
         wds = WindowDataset(self.train_tracks, c.window, self.model.cfg.num_points,
                             c.num_complete_gt, c.windows_per_track, c.p_first, c.seed,
                             key=stage + 1, cache_size=c.cache_size)
-        bar = progress(total=sc.steps, initial=self.state["step"], unit="step",
+        # the bar counts per-mille of the stage: steps or the wall-clock budget, whichever ends it
+        bar = progress(total=1000, initial=int(1000 * self._progress_fraction(stage)), unit="‰",
                        desc=f"stage {stage + 1}/3 ({STAGE_NAMES[stage]}, {self.kind})",
                        disable=None if self.is_main else True)
         self.model.train()
@@ -300,8 +301,9 @@ class Trainer:
             self.state["elapsed"] = float(_all_reduce_max(
                 self.state["elapsed"] + now - t_last, self.world))
             t_last = now
-            bar.update(1)
+            bar.update(int(1000 * min(1.0, self._progress_fraction(stage))) - bar.n)
             step = self.state["step"]
+            bar.set_postfix(step=step, refresh=False)
             if self.is_main:
                 row["frames"] *= self.world
                 self.runlog.train_row(stage, step, self.state["global_step"], row,
