@@ -66,3 +66,18 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def read_text(path: str | Path, what: str) -> str:
+    """The text of ``path``; a missing or unreadable file is a DataError naming it.
+
+    ``what`` names the kind of file in the message ("label file", "calibration file", ...).
+    """
+    from seqshape.errors import DataError
+
+    try:
+        return Path(path).read_text()
+    except FileNotFoundError:
+        raise DataError(path, f"{what} not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(path, f"unreadable {what} ({exc})") from None

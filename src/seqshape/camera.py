@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seqshape._io import atomic_write_text
+from seqshape._io import atomic_write_text, read_text
 from seqshape.errors import DataError
 
 #: KITTI colour image size (width, height) of the 2011_09_26 recordings.
@@ -152,12 +152,7 @@ def read_calib(path: str | Path, image_size: tuple[int, int] = KITTI_IMAGE_SIZE)
     ignored. Malformed lines raise :class:`DataError` naming the file and line.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DataError(path, "calibration file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(path, f"unreadable calibration file ({exc})") from None
+    text = read_text(path, "calibration file")
     values: dict[str, np.ndarray] = {}
     for lineno, line in enumerate(text.splitlines(), start=1):
         parts = line.split()

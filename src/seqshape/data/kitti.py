@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seqshape._io import atomic_write_bytes, atomic_write_text
+from seqshape._io import atomic_write_bytes, atomic_write_text, read_text
 from seqshape.camera import KittiCalib, cam_to_velo, read_calib, velo_to_cam
 from seqshape.data.track import Track
 from seqshape.errors import DataError
@@ -160,12 +160,7 @@ def _parse_label(parts: list[str]) -> KittiLabel:
 def read_labels(path) -> list[KittiLabel]:
     """Read a ``label_02`` file (17 columns, or 18 with a score); DontCare rows are kept."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DataError(path, "label file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(path, f"unreadable label file ({exc})") from None
+    text = read_text(path, "label file")
     labels = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         parts = line.split()
@@ -254,12 +249,7 @@ def pose_to_label_fields(pose, size, calib: KittiCalib) -> dict:
 def read_oxts(path) -> np.ndarray:
     """An oxts file (one row of 30 numbers per frame) as ``(T, 30)`` float64."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DataError(path, "oxts file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(path, f"unreadable oxts file ({exc})") from None
+    text = read_text(path, "oxts file")
     rows = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         parts = line.split()
