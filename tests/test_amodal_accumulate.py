@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from _shapes import box_shell  # noqa: I001
 from scipy.spatial import cKDTree
 
 from seqshape.amodal.accumulate import (
@@ -18,12 +19,7 @@ SIZE = np.array([4.0, 1.8, 1.5])
 
 
 def box_surface(n, seed):
-    rng = np.random.default_rng(seed)
-    half = SIZE / 2
-    p = rng.uniform(-half, half, size=(n, 3))
-    axis = rng.integers(0, 3, n)
-    p[np.arange(n), axis] = np.where(rng.random(n) < 0.5, -1, 1) * half[axis]
-    return p
+    return box_shell(n, seed, SIZE)
 
 
 def chamfer(a, b):

@@ -8,6 +8,7 @@ oracle estimator (returning the true box surface) exercises the sc-* plumbing wi
 import cv2
 import numpy as np
 import pytest
+from _shapes import box_shell  # noqa: I001
 
 from seqshape.amodal.evaluate import evaluate_files, summarise
 from seqshape.amodal.kins import (
@@ -36,12 +37,7 @@ N_FRAMES = 6
 
 
 def surface(n, seed):
-    rng = np.random.default_rng(seed)
-    half = SIZE / 2
-    p = rng.uniform(-half, half, size=(n, 3))
-    axis = rng.integers(0, 3, n)
-    p[np.arange(n), axis] = np.where(rng.random(n) < 0.5, -1, 1) * half[axis]
-    return p
+    return box_shell(n, seed, SIZE)
 
 
 def poses_at(t):
