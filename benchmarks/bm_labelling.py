@@ -13,7 +13,13 @@ runs on the first sequence). Rows:
 
 * ``oracle-shape``: each vehicle's true mesh surface at its true pose; the upper bound of the
   projection + alpha shape + occlusion steps (no estimation error);
-* ``gt-accumulation``, ``sc-gt``, ``sc-seg`` (the latter two with each ``--refine``).
+* ``gt-accumulation``, ``sc-gt``, ``sc-seg`` (the latter two with each ``--refine``);
+* ``sc-gt-box``: sc-gt with each estimated shape fitted to its ground-truth box
+  (``seqshape label --fit-box``).
+
+Besides all reference instances, every row is also scored over the instances within
+``--max-distance`` metres (default 80 m, about KITTI's labelling range; matching still uses
+all of them), and the per-distance breakdown goes into results.json.
 
 The sc-* rows need estimator weights: ``--checkpoint PATH`` or ``pretrained`` (skipped with a
 note when they cannot be loaded).
@@ -33,7 +39,13 @@ from _bench import bench_parser, print_table, time_it
 
 os.environ.setdefault("SEQSHAPE_PROGRESS", "0")
 
-from seqshape.amodal.evaluate import evaluate_files, summarise  # noqa: E402
+from seqshape.amodal.evaluate import (  # noqa: E402
+    breakdown,
+    distances_from_labels,
+    evaluate_files,
+    summarise,
+    within_distance,
+)
 from seqshape.amodal.kins import read_kins, write_kins  # noqa: E402
 from seqshape.amodal.labeler import (  # noqa: E402
     LabelConfig,
@@ -90,7 +102,9 @@ def label_once(root, sequence, name, cfg, estimator, max_frames):
 def reference_subset(root: Path, sequence: str, max_frames: int | None, out_dir: Path) -> Path:
     """The reference KINS file of ``sequence``, cut to its first ``max_frames`` frames.
 
-    The cut copy is written under ``out_dir/reference/amodal`` (the full file when None).
+    The cut copy is written under ``out_dir/reference/amodal`` (the full file when None); each
+    of its annotations carries the ``distance`` of its KITTI label (the copy has no
+    ``label_02`` beside it), so the evaluator's distance breakdown still works.
     """
     full = root / "amodal" / f"{sequence}.json"
     if max_frames is None:
@@ -99,13 +113,20 @@ def reference_subset(root: Path, sequence: str, max_frames: int | None, out_dir:
     doc = read_kins(full)
     images = [img for img in doc["images"] if int(img.get("frame", -1)) in frames]
     ids = {img["id"] for img in images}
+    frame_of = {img["id"]: int(img.get("frame", -1)) for img in images}
+    dists = distances_from_labels(full)
+    anns = []
+    for a in doc["annotations"]:
+        if a["image_id"] in ids:
+            d = dists.get((frame_of[a["image_id"]], str(a.get("track_id"))))
+            anns.append({**a, "distance": d} if d is not None else a)
     path = out_dir / "reference" / "amodal" / f"{sequence}.json"
-    write_kins(path, images, [a for a in doc["annotations"] if a["image_id"] in ids],
-               doc.get("categories"))
+    write_kins(path, images, anns, doc.get("categories"))
     return path
 
 
-def run_method(root, sequences, name, cfg, estimator, out_dir, max_frames=None):
+def run_method(root, sequences, name, cfg, estimator, out_dir, max_frames=None,
+               max_distance=80.0):
     """Label every sequence; returns (amodal metrics, visible metrics, frames, seconds)."""
     pairs, frames, secs = [], 0, 0.0
     for s in sequences:
@@ -116,7 +137,10 @@ def run_method(root, sequences, name, cfg, estimator, out_dir, max_frames=None):
         path = out_dir / name.replace("/", "_") / f"{s}.json"
         write_labels(path, res)
         pairs.append((path, reference_subset(root, s, max_frames, out_dir)))
-    amodal = summarise(*evaluate_files(pairs))
+    results, unmatched = evaluate_files(pairs)
+    amodal = summarise(results, unmatched)
+    amodal["near"] = summarise(within_distance(results, max_distance))
+    amodal["breakdown"] = breakdown(results)
     visible = summarise(*evaluate_files(pairs, segm="i_segm"))
     return amodal, visible, frames, secs
 
@@ -151,7 +175,9 @@ def main(argv=None) -> int:
                    help="evaluate the first F frames of each (and generate F when absent)")
     p.add_argument("--checkpoint", default="pretrained")
     p.add_argument("--modes", nargs="+",
-                   default=["oracle-shape", "gt-accumulation", "sc-gt", "sc-seg"])
+                   default=["oracle-shape", "gt-accumulation", "sc-gt", "sc-gt-box", "sc-seg"])
+    p.add_argument("--max-distance", type=float, default=80.0,
+                   help="also score the instances at most this far (m)")
     p.add_argument("--refine", nargs="+", default=list(REFINE_MODES), choices=REFINE_MODES)
     p.add_argument("--order", default="pixel", choices=["pixel", "median"])
     p.add_argument("--threads", type=int, default=1,
@@ -180,30 +206,36 @@ def main(argv=None) -> int:
         if mode.startswith("sc-") and estimator is None:
             continue
         for refine in (args.refine if mode.startswith("sc-") else ["none"]):
-            cfg = LabelConfig(mode="gt-accumulation" if mode == "oracle-shape" else mode,
-                              refine=refine, order=args.order, checkpoint=args.checkpoint)
+            label_mode = {"oracle-shape": "gt-accumulation", "sc-gt-box": "sc-gt"}.get(mode, mode)
+            cfg = LabelConfig(mode=label_mode, refine=refine, order=args.order,
+                              checkpoint=args.checkpoint, fit_box=mode == "sc-gt-box")
             name = mode if not mode.startswith("sc-") else f"{mode}/{refine}"
             a, v, n, secs = run_method(root, sequences, name, cfg, estimator, out_dir,
-                                       args.frames)
+                                       args.frames, args.max_distance)
             fps, spread = (n / secs, (n / secs, n / secs))
             if args.repeats > 0:
                 fps, spread = time_method(root, sequences[0], mode, cfg, estimator, args.repeats,
                                           args.frames)
             rows.append({"method": name, "amodal": a, "visible": v, "fps": fps,
                          "fps_range": spread, "frames": n})
-            print(f"  {name}: miss {a['miss_pct']:.2f}%  mIoU {a['miou']:.3f}  "
+            print(f"  {name}: miss {a['miss_pct']:.2f}%  mIoU {a['miou']:.3f}  (<= "
+                  f"{args.max_distance:g} m: {a['near']['miss_pct']:.2f}% {a['near']['miou']:.3f})  "
                   f"visible mIoU {v['miou']:.3f}  {fps:.2f} frames/s ({n} frames)", flush=True)
             write_results(out_dir, root, note, args, rows)
     print()
-    print_table(("Method", "% Miss", "mIoU", "mIoU (misses = 0)", "visible mIoU",
-                 "unmatched preds", "frames/s (median, min-max)"),
+    near = f"<= {args.max_distance:g} m"
+    print_table(("Method", "% Miss", "mIoU", f"% Miss ({near})", f"mIoU ({near})",
+                 "mIoU (misses = 0)", "visible mIoU", "unmatched preds",
+                 "frames/s (median, min-max)"),
                 [(r["method"], f"{r['amodal']['miss_pct']:.2f}", f"{r['amodal']['miou']:.3f}",
+                  f"{r['amodal']['near']['miss_pct']:.2f}", f"{r['amodal']['near']['miou']:.3f}",
                   f"{r['amodal']['miou_with_misses']:.3f}", f"{r['visible']['miou']:.3f}",
                   r["amodal"]["unmatched_predictions"],
                   f"{r['fps']:.2f} ({r['fps_range'][0]:.2f}-{r['fps_range'][1]:.2f})")
                  for r in rows])
     instances = rows[0]["amodal"]["n"] if rows else 0
-    print(f"\n{instances} reference instances, {rows[0]['frames'] if rows else 0} frames; {note}")
+    n_near = rows[0]["amodal"]["near"]["n"] if rows else 0
+    print(f"\n{instances} reference instances ({n_near} within {args.max_distance:g} m), {rows[0]['frames'] if rows else 0} frames; {note}")
     write_results(out_dir, root, note, args, rows)
     print(f"labels and results.json in {out_dir}")
     return 0

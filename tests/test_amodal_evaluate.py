@@ -57,7 +57,7 @@ def test_misses_unmatched_prediction_and_low_iou():
     bd = breakdown(res)
     assert bd["occlusion"]["none (<1%)"]["n"] == 2
     assert bd["occlusion"]["largely (30-70%)"]["misses"] == 1
-    assert bd["distance"][">=50 m"]["miss_pct"] == pytest.approx(100.0)
+    assert bd["distance"]["50-80 m"]["miss_pct"] == pytest.approx(100.0)
 
 
 def test_empty_image_and_no_predictions():
@@ -67,3 +67,15 @@ def test_empty_image_and_no_predictions():
     assert unmatched == 1
     res, _ = evaluate_image(0, [], [box(0, 0, 3, 3)])
     assert summarise(res)["miss_pct"] == 100.0 and np.isnan(summarise(res)["miou"])
+
+
+def test_within_distance_keeps_near_instances_only():
+    from seqshape.amodal.evaluate import within_distance
+
+    g = [np.zeros((4, 4), bool) for _ in range(3)]
+    for k, m in enumerate(g):
+        m[k, :] = True
+    res, _ = evaluate_image(0, [g[0]], g, gt_distance=[10.0, 90.0, float("nan")])
+    near = within_distance(res, 80.0)
+    assert [r.gt_index for r in near] == [0]
+    assert summarise(near)["miss_pct"] == 0.0 and summarise(res)["misses"] == 2

@@ -200,3 +200,58 @@ def test_max_frames_equals_a_shorter_sequence(kitti, tmp_path):
     assert len(full.images) == N_FRAMES
     with pytest.raises(ConfigError):
         label_sequence(kitti, "0000", cfg, max_frames=0)
+
+
+class ScaledEstimator(OracleEstimator):
+    """The oracle's box surface, shrunk to 60 % and shifted 0.5 m along its heading."""
+
+    def step(self, ids, point_lists):
+        from seqshape.model.estimator import Estimate
+
+        out = []
+        for e in super().step(ids, point_lists):
+            shape = sensor_to_canonical(e.complete, e.pose) * 0.6
+            pose = e.pose + np.array([0.5 * np.cos(e.pose[3]), 0.5 * np.sin(e.pose[3]), 0, 0])
+            out.append(Estimate(e.track_id, canonical_to_sensor(shape, pose), pose, e.num_points))
+        return out
+
+
+def test_fit_box_recovers_size_and_pose(kitti, tmp_path):
+    bad = score(kitti, label_sequence(kitti, "0000", LabelConfig(mode="sc-gt", refine="none"),
+                                      ScaledEstimator()), tmp_path)
+    fitted = score(kitti, label_sequence(
+        kitti, "0000", LabelConfig(mode="sc-gt", refine="none", fit_box=True),
+        ScaledEstimator()), tmp_path)
+    assert bad["miou_with_misses"] < 0.6, bad  # the shrunken, shifted shape is wrong
+    assert fitted["misses"] == 0 and fitted["miou"] > 0.93, fitted
+
+
+def test_fit_to_box_hand_case():
+    from seqshape.amodal.refine import fit_to_box
+
+    shape = box_shell(4000, 1, (2.0, 1.0, 0.5)) + np.array([0.3, -0.2, 0.1])
+    out = fit_to_box(shape, (4.0, 2.0, 1.5), lo=0.0, hi=100.0)
+    np.testing.assert_allclose(out.min(0), [-2.0, -1.0, -0.75], atol=1e-9)
+    np.testing.assert_allclose(out.max(0), [2.0, 1.0, 0.75], atol=1e-9)
+    from seqshape.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="sc-gt"):
+        LabelConfig(mode="gt-accumulation", fit_box=True)
+
+
+def test_label_and_evaluate_masks_cli(kitti, tmp_path):
+    import json
+
+    from seqshape.cli import main
+
+    labels = tmp_path / "labels.json"
+    assert main(["label", "--kitti", str(kitti), "--sequence", "0000", "--mode",
+                 "gt-accumulation", "--out", str(labels)]) == 0
+    out = tmp_path / "ev"
+    assert main(["evaluate-masks", "--pred", str(labels), "--gt",
+                 str(kitti / "amodal" / "0000.json"), "--out", str(out),
+                 "--max-distance", "1"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["n"] == 2 * N_FRAMES and m["misses"] == 0
+    assert m["within_max_distance"]["n"] == 0  # both cars are farther than 1 m
+    assert "(<= 1 m)" in (out / "metrics.md").read_text()

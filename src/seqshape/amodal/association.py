@@ -107,23 +107,30 @@ def associate(frames: Sequence[Sequence[Detection]], gate: float = 3.0,
 # ----------------------------------------------------------------------------- sc-seg input
 
 
-def segment_frame(scan, calib, masks, min_depth: float = 1.0, **diffusion_kwargs):
+def segment_frame(scan, calib, masks, min_depth: float = 1.0, grow: bool = True,
+                  **diffusion_kwargs):
     """Points of each 2D instance of one frame: a list (one per mask) of ``(N_i, 3)`` float32.
 
     ``scan (N, 3+)`` is the velodyne frame; ground points are removed
-    (:func:`~seqshape.amodal.diffusion.ground_mask`), the rest projected with camera 2, and the
-    points inside the image labelled by :func:`~seqshape.amodal.diffusion.diffuse_labels`.
+    (:func:`~seqshape.amodal.diffusion.ground_mask`), the rest projected with camera 2, the
+    points inside the image labelled by :func:`~seqshape.amodal.diffusion.diffuse_labels`, and
+    (``grow``) each instance grown into the connected points outside the image
+    (:func:`~seqshape.amodal.diffusion.grow_instances`).
     """
-    from seqshape.amodal.diffusion import diffuse_labels, ground_mask
+    from seqshape.amodal.diffusion import diffuse_labels, ground_mask, grow_instances
     from seqshape.camera import in_image, project_points
 
     pts = np.asarray(scan, dtype=np.float64)[:, :3]
     pts = pts[~ground_mask(pts)]
     uv, depth = project_points(pts, calib)
     keep = in_image(uv, depth, calib, min_depth=min_depth)
-    pts, uv = pts[keep], uv[keep]
-    labels = diffuse_labels(pts, uv, masks, **diffusion_kwargs)
-    return [pts[labels == m].astype(np.float32) for m in range(len(masks))]
+    labels = diffuse_labels(pts[keep], uv[keep], masks, **diffusion_kwargs)
+    parts = [pts[keep][labels == m] for m in range(len(masks))]
+    if grow:
+        gap_kw = {k: diffusion_kwargs[k] for k in ("cluster_gap", "cluster_gap_per_m")
+                  if k in diffusion_kwargs}
+        parts = grow_instances(parts, pts[~keep], **gap_kw)
+    return [p.astype(np.float32) for p in parts]
 
 
 def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0,

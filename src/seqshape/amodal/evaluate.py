@@ -30,7 +30,7 @@ OCCLUSION_BINS = (("none (<1%)", 0.0, 0.01), ("partly (1-30%)", 0.01, 0.30),
                   ("largely (30-70%)", 0.30, 0.70), ("heavily (>=70%)", 0.70, 1.01))
 #: distance bins in metres
 DISTANCE_BINS = (("0-15 m", 0.0, 15.0), ("15-30 m", 15.0, 30.0), ("30-50 m", 30.0, 50.0),
-                 (">=50 m", 50.0, np.inf))
+                 ("50-80 m", 50.0, 80.0), (">=80 m", 80.0, np.inf))
 
 
 @dataclass
@@ -116,6 +116,16 @@ def summarise(results: Sequence[InstanceResult], unmatched_predictions: int = 0)
             "unmatched_predictions": int(unmatched_predictions)}
 
 
+def within_distance(results: Sequence[InstanceResult], max_distance: float
+                    ) -> list[InstanceResult]:
+    """The results of reference instances at most ``max_distance`` metres away.
+
+    Instances of unknown distance (NaN) are left out. The matching that produced ``results``
+    used every instance, so a far vehicle's prediction never steals a near one's match.
+    """
+    return [r for r in results if np.isfinite(r.distance) and r.distance <= max_distance]
+
+
 def breakdown(results: Sequence[InstanceResult]) -> dict[str, dict[str, dict]]:
     """Metrics per occlusion bin and per distance bin (only bins with instances)."""
     out: dict[str, dict[str, dict]] = {"occlusion": {}, "distance": {}}
@@ -166,7 +176,7 @@ def breakdown_table(bd: dict[str, dict[str, dict]]) -> str:
 # ----------------------------------------------------------------------------- files
 
 
-def _distances_from_labels(gt_path, doc) -> dict[tuple[int, str], float]:
+def distances_from_labels(gt_path) -> dict[tuple[int, str], float]:
     """``{(frame, track_id): distance}`` from ``<root>/label_02/SSSS.txt`` beside ``amodal/``.
 
     The distance is the planar range (m) of the box centre in the velodyne frame. Empty when
@@ -210,7 +220,7 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
     unmatched = 0
     for pred_path, gt_path in pairs:
         pred_doc, gt_doc = read_kins(pred_path), read_kins(gt_path)
-        dists = _distances_from_labels(gt_path, gt_doc)
+        dists = distances_from_labels(gt_path)
 
         def keep(a):
             return category_ids is None or a["category_id"] in category_ids

@@ -54,6 +54,8 @@ class LabelConfig:
     gate: sc-seg association gate (m).
     min_visible_area: instances whose visible mask is smaller (pixels) are not labelled
         (KINS annotates what can be seen; the scene generator uses the same 20 px rule).
+    fit_box: sc-gt only: stretch each estimated shape to its ground-truth box and place it at
+        the box pose (:func:`seqshape.amodal.refine.fit_to_box`).
     """
 
     mode: str = "sc-gt"
@@ -66,6 +68,7 @@ class LabelConfig:
     min_points: int = 5
     gate: float = 3.0
     min_visible_area: int = 20
+    fit_box: bool = False
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -74,6 +77,9 @@ class LabelConfig:
             raise ConfigError(f"refine must be one of {REFINE_MODES}, got {self.refine!r}")
         if self.order not in ORDERS:
             raise ConfigError(f"order must be one of {ORDERS}, got {self.order!r}")
+        if self.fit_box and self.mode != "sc-gt":
+            raise ConfigError(f"fit_box needs ground-truth 3D boxes: only mode sc-gt, not "
+                              f"{self.mode}")
 
 
 @dataclass
@@ -105,7 +111,8 @@ def gt_track_inputs(seq, types=("Car", "Van")):
     tracks = extract_tracks(seq, types=types)
     inputs = [TrackInput(t.track_id, list(t.meta["frames"]), t.points, t.poses,
                          TYPE_TO_CATEGORY.get(t.meta.get("type"), 8),
-                         int(t.meta["kitti_track_id"])) for t in tracks]
+                         int(t.meta["kitti_track_id"]), np.asarray(t.size, dtype=np.float64))
+              for t in tracks]
     return tracks, inputs
 
 
@@ -165,7 +172,7 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
     else:
         est = estimator if estimator is not None else load_estimator(cfg.checkpoint)
         est.reset()
-        clouds = [c.clouds for c in complete_tracks(est, inputs, cfg.refine)]
+        clouds = [c.clouds for c in complete_tracks(est, inputs, cfg.refine, cfg.fit_box)]
     timings["complete"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     result = render_labels(seq, clouds_by_frame(inputs, clouds), cfg)

@@ -18,6 +18,12 @@ that frame's sensor frame:
   bidirectional pose estimate or its 180-degree flip, whichever places it closer (Chamfer) to
   the frame's own completed cloud.
 
+Box fitting (``fit_box=True``, sc-gt only: it needs the ground-truth boxes): every frame's
+estimated shape is taken into the canonical frame with its own estimated pose, stretched per
+axis so that its robust extent (1st-99th percentile) fills the box ``(l, w, h)``, and placed
+at the ground-truth pose. The estimator then supplies only what the box cannot: the vehicle's
+outline inside it (bonnet, roof line, wheel arches).
+
 Frames with no points (a labelled box with no LiDAR return) do not advance the estimate; with
 ground-truth poses the previous shape is carried to the new pose, else the estimate is the
 state's prediction.
@@ -49,6 +55,7 @@ class TrackInput:
     poses: np.ndarray | None = None
     category_id: int = 4
     label_id: int = 0  # the integer track id written to the labels
+    size: np.ndarray | None = None  # (3,) ground-truth box (l, w, h), or None when unknown
 
 
 @dataclass
@@ -130,16 +137,51 @@ def _backfill(track: TrackInput, fwd: Completion, bwd: Completion, bi: Completio
     return Completion(clouds, poses, np.full(len(track.frames), src.fused[i]))
 
 
-def complete_tracks(estimator, tracks: Sequence[TrackInput], refine: str = "none"
-                    ) -> list[Completion]:
-    """Complete every track with one of :data:`REFINE_MODES` (module doc)."""
+def fit_to_box(shape: np.ndarray, size, lo: float = 1.0, hi: float = 99.0) -> np.ndarray:
+    """Stretch a canonical shape ``(K, 3)`` per axis so its ``lo``-``hi`` percentile extent
+    becomes the box ``size = (l, w, h)`` centred on the origin (the box centre)."""
+    shape = np.asarray(shape, dtype=np.float64)
+    size = np.asarray(size, dtype=np.float64).reshape(3)
+    if len(shape) == 0:
+        return shape
+    a, b = np.percentile(shape, [lo, hi], axis=0)  # (3,), (3,)
+    extent = b - a
+    scale = np.where(extent > 1e-6, size / np.maximum(extent, 1e-6), 1.0)
+    return (shape - (a + b) / 2) * scale
+
+
+def _fit_boxes(track: TrackInput, comp: Completion) -> Completion:
+    """Re-place every frame's estimated shape in the track's ground-truth box (module doc)."""
+    if track.poses is None or track.size is None:
+        raise ValueError(f"track {track.track_id}: box fitting needs ground-truth poses and a "
+                         f"box size")
+    clouds, poses = [], comp.poses.copy()
+    for t, (cloud, pose) in enumerate(zip(comp.clouds, comp.poses, strict=True)):
+        gt = track.poses[t]
+        if cloud is None or not np.all(np.isfinite(gt)):
+            clouds.append(cloud)
+            continue
+        clouds.append(canonical_to_sensor(fit_to_box(sensor_to_canonical(cloud, pose),
+                                                     track.size), gt))
+        poses[t] = gt
+    return Completion(clouds, poses, comp.fused)
+
+
+def complete_tracks(estimator, tracks: Sequence[TrackInput], refine: str = "none",
+                    fit_box: bool = False) -> list[Completion]:
+    """Complete every track with one of :data:`REFINE_MODES`, optionally fitted to its
+    ground-truth box (``fit_box``; module doc)."""
     if refine not in REFINE_MODES:
         raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
     fwd = complete_forward(estimator, tracks)
     if refine == "none":
-        return fwd
-    bwd = _run(estimator, tracks, reverse=True, tag="bwd")  # fused: points from t to the end
-    bi = [_pick(f, b) for f, b in zip(fwd, bwd, strict=True)]
-    if refine == "bidirectional":
-        return bi
-    return [_backfill(t, f, b, c) for t, f, b, c in zip(tracks, fwd, bwd, bi, strict=True)]
+        out = fwd
+    else:
+        bwd = _run(estimator, tracks, reverse=True, tag="bwd")  # fused: points from t to end
+        out = [_pick(f, b) for f, b in zip(fwd, bwd, strict=True)]
+        if refine == "backfill":
+            out = [_backfill(t, f, b, c) for t, f, b, c in zip(tracks, fwd, bwd, out,
+                                                                strict=True)]
+    if fit_box:
+        out = [_fit_boxes(t, c) for t, c in zip(tracks, out, strict=True)]
+    return out

@@ -21,6 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--name", default="labels", help="row name in the markdown table")
     parser.add_argument("--categories", type=int, nargs="*", default=None,
                         help="category ids to score (default: all)")
+    parser.add_argument("--max-distance", type=float, default=None, metavar="M",
+                        help="also report the metrics over reference instances at most M "
+                             "metres away (matching still uses every instance)")
 
 
 def resolve_pairs(preds: list[Path], gts: list[Path]) -> list[tuple[Path, Path]]:
@@ -57,18 +60,27 @@ def run(args: argparse.Namespace) -> int:
         markdown_table,
         results_to_records,
         summarise,
+        within_distance,
     )
 
     pairs = resolve_pairs(args.pred, args.gt)
     results, unmatched = evaluate_files(pairs, args.categories)
     metrics = summarise(results, unmatched)
     bd = breakdown(results)
+    rows = {args.name: metrics}
+    extra = {}
+    if args.max_distance is not None:
+        if not args.max_distance > 0:
+            raise ConfigError(f"--max-distance must be > 0, got {args.max_distance}")
+        near = within_distance(results, args.max_distance)
+        extra["within_max_distance"] = {**summarise(near), "max_distance_m": args.max_distance}
+        rows[f"{args.name} (<= {args.max_distance:g} m)"] = extra["within_max_distance"]
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(args.out / "metrics.json",
-                      {**metrics, "breakdown": bd, "iou_threshold": 0.5,
+                      {**metrics, **extra, "breakdown": bd, "iou_threshold": 0.5,
                        "pairs": [[str(p), str(g)] for p, g in pairs]})
     atomic_write_json(args.out / "instances.json", results_to_records(results), indent=None)
-    table = markdown_table({args.name: metrics}) + "\n" + breakdown_table(bd)
+    table = markdown_table(rows) + "\n" + breakdown_table(bd)
     atomic_write_text(args.out / "metrics.md", table)
     print(table)
     print(f"wrote {args.out / 'metrics.json'}")

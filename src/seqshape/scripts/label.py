@@ -24,6 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"offline refinement (default {DEFAULT_REFINE}; docs/amodal.md)")
     parser.add_argument("--no-refine", dest="refine", action="store_const", const="none",
                         help="the paper's forward-only completion")
+    parser.add_argument("--fit-box", action="store_true",
+                        help="sc-gt: stretch each completed shape to its ground-truth box and "
+                             "place it at the box pose")
     parser.add_argument("--order", choices=ORDERS, default="pixel",
                         help="occlusion rule: per-pixel depth or median depth")
     parser.add_argument("--alpha", type=float, default=None,
@@ -78,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out is None:
         raise ConfigError("--out is required (unless --export-tracks)")
     cfg = LabelConfig(mode=args.mode, checkpoint=args.checkpoint, refine=args.refine,
-                      order=args.order, alpha=args.alpha,
+                      order=args.order, alpha=args.alpha, fit_box=args.fit_box,
                       instances=str(args.instances) if args.instances else None)
     if args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
