@@ -1,9 +1,17 @@
 """Label diffusion and ground removal on hand-built point sets; frame association."""
 
 import numpy as np
+from _shapes import box_shell  # noqa: I001
 
 from seqshape.amodal.association import Detection, associate
-from seqshape.amodal.diffusion import BACKGROUND, diffuse_labels, ground_mask, largest_cluster
+from seqshape.amodal.diffusion import (
+    BACKGROUND,
+    components,
+    diffuse_labels,
+    ground_mask,
+    grow_instances,
+    largest_cluster,
+)
 
 
 def blob(centre, n, rng, spread=(1.0, 0.5, 0.4)):
@@ -110,3 +118,22 @@ def test_vectorised_ransac_equals_loop():
         else:
             np.testing.assert_allclose(a[0][0], b[0][0], atol=1e-12)
             assert abs(a[0][1] - b[0][1]) < 1e-9
+
+
+def test_components_link_sparse_scan_lines():
+    # two dense scan lines 0.6 m apart: every point's 8 nearest neighbours lie on its own line,
+    # yet the lines are one object at a 0.75 m gap (and two at 0.5 m)
+    x = np.linspace(0, 4, 400)
+    pts = np.r_[np.c_[x, np.zeros_like(x), np.zeros_like(x)],
+                np.c_[x, np.zeros_like(x), np.full_like(x, 0.6)]]
+    assert len(np.unique(components(pts, 0.75))) == 1
+    assert len(np.unique(components(pts, 0.5))) == 2
+
+
+def test_grow_instances_recovers_the_cut_part_only():
+    car = box_shell(3000, 0, (4.0, 1.8, 1.5)) + np.array([8.0, 0.0, 0.0])
+    other = box_shell(1000, 1, (4.0, 1.8, 1.5)) + np.array([8.0, 4.0, 0.0])  # 2.2 m away
+    seen = car[:, 0] > 9.0  # the part inside the image
+    grown = grow_instances([car[seen]], np.r_[car[~seen], other], cluster_gap=0.5)[0]
+    assert len(grown) == len(car)
+    assert np.all(grown[:, 1] < 1.0)  # nothing of the other car
