@@ -193,4 +193,6 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
             cat_votes.setdefault(t, []).append(c)
     for t, tr in tracks.items():
         tr.category_id = int(np.bincount(cat_votes[t]).argmax())
+        if ego is not None and max(tr.frames) < len(ego):
+            tr.ego = np.asarray(ego, dtype=np.float64)[tr.frames]
     return [tracks[t] for t in sorted(tracks)]

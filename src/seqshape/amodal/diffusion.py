@@ -18,7 +18,8 @@ normalised to sum 1 (as LDLS's transition matrix: sparse and dense regions alike
 so a point keeps its pixel's label only when its 3D neighbourhood agrees: background points seen
 through a mask (a wall behind a car, or the ground inside a dilated mask) are pulled back to
 background by their neighbours. A point's label is the argmax; then each instance keeps only
-its largest cluster (connected components of its points), which drops the remaining strays.
+its main cluster (:func:`vehicle_cluster`: the largest connected component of its points and
+the components that fit one vehicle with it), which drops the remaining strays.
 The link distance of that filter grows with range, ``max(cluster_gap, cluster_gap_per_m *
 range)`` (``cluster_gap_per_m`` = 0.025: 1.25 m at 50 m): the gap between two scan lines on
 one vehicle is range times the vertical angular step (0.4 degrees on the HDL-64E, 0.7 m at
@@ -172,6 +173,34 @@ def largest_cluster(points, gap: float) -> np.ndarray:
     return comp == np.bincount(comp).argmax()
 
 
+def vehicle_cluster(points, gap: float, join: float = 3.0, max_extent: float = 7.0
+                    ) -> np.ndarray:
+    """Boolean ``(N,)``: the largest component plus the others that fit one vehicle with it.
+
+    Seen at a grazing angle, a far vehicle's scan lines land metres apart in depth (the rear
+    face, then the roof), so it splits into several components. Components are added, largest
+    first, when they lie within ``join`` metres of the kept points and the kept points still
+    fit in ``max_extent`` metres (the planar diagonal of their bounding box); strays seen
+    through the mask (a wall, the road far behind) fail one or the other.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    comp = components(points, gap)
+    if len(comp) <= 1:
+        return np.ones(len(comp), dtype=bool)
+    sizes = np.bincount(comp)
+    order = np.argsort(-sizes, kind="stable")
+    keep = comp == order[0]
+    for c in order[1:]:
+        sel = comp == c
+        d, _ = cKDTree(points[keep]).query(points[sel], distance_upper_bound=join)
+        if not np.isfinite(d).any():
+            continue
+        both = points[keep | sel, :2]
+        if np.linalg.norm(both.max(0) - both.min(0)) <= max_extent:
+            keep |= sel
+    return keep
+
+
 def cluster_gap_for(points, cluster_gap: float, per_m: float) -> float:
     """Link distance (m) of the cluster filter for an instance's ``points`` (module doc)."""
     if len(points) == 0:
@@ -217,7 +246,7 @@ def diffuse_labels(points, uv, masks: Sequence[np.ndarray], k: int = 10, sigma: 
         idx = np.flatnonzero(labels == m)
         if cluster_gap > 0 and len(idx) > 1:
             gap = cluster_gap_for(points[idx], cluster_gap, cluster_gap_per_m)
-            labels[idx[~largest_cluster(points[idx], gap)]] = BACKGROUND
+            labels[idx[~vehicle_cluster(points[idx], gap)]] = BACKGROUND
         if np.sum(labels == m) < min_points:
             labels[labels == m] = BACKGROUND
     return labels

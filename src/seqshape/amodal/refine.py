@@ -17,6 +17,10 @@ that frame's sensor frame:
   every frame: with the ground-truth pose when known (sc-gt), else with that frame's
   bidirectional pose estimate or its 180-degree flip, whichever places it closer (Chamfer) to
   the frame's own completed cloud.
+* ``"smooth"``: as ``"backfill"``, but without ground-truth poses the best shape is placed
+  with the track's smoothed poses (:mod:`seqshape.amodal.smooth`: a robust local fit of the
+  bidirectional pose estimates in the world frame given by the ego poses, heading from the
+  motion of moving vehicles). With ground-truth poses it equals ``"backfill"``.
 
 Box fitting (``fit_box=True``, sc-gt only: it needs the ground-truth boxes): every frame's
 estimated shape is taken into the canonical frame with its own estimated pose, stretched per
@@ -39,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
 
-REFINE_MODES = ("none", "bidirectional", "backfill")
+REFINE_MODES = ("none", "bidirectional", "backfill", "smooth")
 
 
 @dataclass
@@ -56,6 +60,7 @@ class TrackInput:
     category_id: int = 4
     label_id: int = 0  # the integer track id written to the labels
     size: np.ndarray | None = None  # (3,) ground-truth box (l, w, h), or None when unknown
+    ego: np.ndarray | None = None  # (T, 4, 4) sensor -> common frame per listed frame
 
 
 @dataclass
@@ -117,16 +122,24 @@ def _pick(fwd: Completion, bwd: Completion) -> Completion:
                       np.maximum(fwd.fused, bwd.fused))
 
 
-def _backfill(track: TrackInput, fwd: Completion, bwd: Completion, bi: Completion) -> Completion:
+def _backfill(track: TrackInput, fwd: Completion, bwd: Completion, bi: Completion,
+              smooth: bool = False) -> Completion:
     """Carry the best fused shape to every frame (module doc)."""
     best_f, best_b = int(np.argmax(fwd.fused)), int(np.argmax(bwd.fused))
     src = fwd if fwd.fused[best_f] >= bwd.fused[best_b] else bwd
     i = best_f if src is fwd else best_b
     shape = sensor_to_canonical(src.clouds[i], src.poses[i])  # (K, 3) canonical
     clouds, poses = [], np.zeros_like(bi.poses)
+    smoothed = None
+    if smooth and (track.poses is None or not np.all(np.isfinite(track.poses))):
+        from seqshape.amodal.smooth import smooth_track_poses
+
+        smoothed = smooth_track_poses(bi.poses, track.frames, track.ego)
     for t in range(len(track.frames)):
         if track.poses is not None and np.all(np.isfinite(track.poses[t])):
             cands = [track.poses[t]]
+        elif smoothed is not None:
+            cands = [smoothed[t]]
         else:
             flip = bi.poses[t] + np.array([0.0, 0.0, 0.0, np.pi])
             cands = [bi.poses[t], flip]
@@ -179,9 +192,9 @@ def complete_tracks(estimator, tracks: Sequence[TrackInput], refine: str = "none
     else:
         bwd = _run(estimator, tracks, reverse=True, tag="bwd")  # fused: points from t to end
         out = [_pick(f, b) for f, b in zip(fwd, bwd, strict=True)]
-        if refine == "backfill":
-            out = [_backfill(t, f, b, c) for t, f, b, c in zip(tracks, fwd, bwd, out,
-                                                                strict=True)]
+        if refine in ("backfill", "smooth"):
+            out = [_backfill(t, f, b, c, refine == "smooth")
+                   for t, f, b, c in zip(tracks, fwd, bwd, out, strict=True)]
     if fit_box:
         out = [_fit_boxes(t, c) for t, c in zip(tracks, out, strict=True)]
     return out
