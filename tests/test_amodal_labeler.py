@@ -255,3 +255,16 @@ def test_label_and_evaluate_masks_cli(kitti, tmp_path):
     assert m["n"] == 2 * N_FRAMES and m["misses"] == 0
     assert m["within_max_distance"]["n"] == 0  # both cars are farther than 1 m
     assert "(<= 1 m)" in (out / "metrics.md").read_text()
+
+
+def test_add_observed_appends_an_even_subset():
+    from seqshape.amodal.labeler import add_observed
+    from seqshape.amodal.refine import TrackInput
+
+    pts = [np.arange(30, dtype=float).reshape(10, 3), np.zeros((0, 3))]
+    inp = TrackInput("t", [0, 1], pts)
+    cloud = np.ones((4, 3))
+    out = add_observed(inp, [cloud, cloud], max_points=4)
+    assert out[0].shape == (8, 3) and out[1] is cloud  # nothing observed: unchanged
+    np.testing.assert_array_equal(out[0][:4], cloud)
+    np.testing.assert_array_equal(out[0][4:, 0], [0, 9, 18, 27])  # first, ..., last point

@@ -56,6 +56,9 @@ class LabelConfig:
         (KINS annotates what can be seen; the scene generator uses the same 20 px rule).
     fit_box: sc-gt only: stretch each estimated shape to its ground-truth box and place it at
         the box pose (:func:`seqshape.amodal.refine.fit_to_box`).
+    observed: sc-* modes: add (up to ``observed_max`` of) the frame's own segmented points to
+        its completed cloud before the alpha shape. They are measured vehicle surface, so they
+        belong inside the amodal mask wherever the completion is misplaced or too small.
     """
 
     mode: str = "sc-gt"
@@ -69,6 +72,8 @@ class LabelConfig:
     gate: float = 3.0
     min_visible_area: int = 20
     fit_box: bool = False
+    observed: bool = True
+    observed_max: int = 4096
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -114,6 +119,21 @@ def gt_track_inputs(seq, types=("Car", "Van")):
                          int(t.meta["kitti_track_id"]), np.asarray(t.size, dtype=np.float64))
               for t in tracks]
     return tracks, inputs
+
+
+def add_observed(inp, clouds: list, max_points: int) -> list:
+    """Each frame's completed cloud with up to ``max_points`` of its own input points added
+    (an even subset, the same on every run)."""
+    out = []
+    for pts, cloud in zip(inp.points, clouds, strict=True):
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        if cloud is None or len(pts) == 0:
+            out.append(cloud)
+            continue
+        if len(pts) > max_points:
+            pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(np.int64)]
+        out.append(np.vstack([np.asarray(cloud, dtype=np.float64), pts]))
+    return out
 
 
 def clouds_by_frame(inputs, clouds_per_track) -> dict[int, dict[str, tuple]]:
@@ -173,6 +193,9 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
         est = estimator if estimator is not None else load_estimator(cfg.checkpoint)
         est.reset()
         clouds = [c.clouds for c in complete_tracks(est, inputs, cfg.refine, cfg.fit_box)]
+        if cfg.observed:
+            clouds = [add_observed(inp, cl, cfg.observed_max) for inp, cl in
+                      zip(inputs, clouds, strict=True)]
     timings["complete"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     result = render_labels(seq, clouds_by_frame(inputs, clouds), cfg)

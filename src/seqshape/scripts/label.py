@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fit-box", action="store_true",
                         help="sc-gt: stretch each completed shape to its ground-truth box and "
                              "place it at the box pose")
+    parser.add_argument("--no-observed", dest="observed", action="store_false",
+                        help="sc-*: do not add each frame's own segmented points to its "
+                             "completed cloud before the alpha shape")
     parser.add_argument("--order", choices=ORDERS, default="pixel",
                         help="occlusion rule: per-pixel depth or median depth")
     parser.add_argument("--alpha", type=float, default=None,
@@ -82,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--out is required (unless --export-tracks)")
     cfg = LabelConfig(mode=args.mode, checkpoint=args.checkpoint, refine=args.refine,
                       order=args.order, alpha=args.alpha, fit_box=args.fit_box,
+                      observed=args.observed,
                       instances=str(args.instances) if args.instances else None)
     if args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
