@@ -147,7 +147,7 @@ def test_gt_accumulation_end_to_end(kitti, tmp_path):
     assert paths[0].is_file() and cv2.imread(str(paths[0])).shape == (375, 1242, 3)
 
 
-@pytest.mark.parametrize("refine", ["none", "bidirectional", "backfill"])
+@pytest.mark.parametrize("refine", ["none", "bidirectional", "backfill", "smooth"])
 def test_sc_gt_with_oracle(kitti, tmp_path, refine):
     est = OracleEstimator()
     result = label_sequence(kitti, "0000", LabelConfig(mode="sc-gt", refine=refine), est)

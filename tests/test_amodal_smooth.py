@@ -45,7 +45,7 @@ def test_parked_vehicle_takes_the_majority_heading():
     truth = np.array([15.0, -4.0, -0.9, 1.2])
     noisy = truth + np.c_[rng.normal(0, 0.2, (len(frames), 3)), rng.normal(0, 0.1, len(frames))]
     noisy[:4, 3] += np.pi
-    out = smooth_track_poses(noisy, frames)  # static sensor
+    out = smooth_track_poses(noisy, frames)  # no ego poses
     err = np.linalg.norm(out[:, :3] - truth[:3], axis=1)
     raw = np.linalg.norm(noisy[:, :3] - truth[:3], axis=1)
     assert err.mean() < 0.5 * raw.mean() and err.max() < 0.3, (err, raw)
@@ -59,3 +59,13 @@ def test_axial_mean_and_edge_cases():
     np.testing.assert_allclose(one, [[1.0, 2.0, 0.0, 0.5]], atol=1e-9)
     with pytest.raises(ValueError):
         smooth_track_poses(np.zeros((2, 4)), [1])
+
+
+def test_without_ego_poses_the_heading_is_not_taken_from_motion():
+    frames = np.arange(20)
+    truth = np.c_[10 + 0.5 * frames, np.full(20, 1.0), np.zeros(20), np.full(20, 0.3)]
+    out = smooth_track_poses(truth, frames)  # relative motion along x, heading 0.3
+    np.testing.assert_allclose(out, truth, atol=1e-6)
+    eye = np.broadcast_to(np.eye(4), (20, 4, 4))
+    moving = smooth_track_poses(truth, frames, eye)  # static sensor known: heading = motion
+    np.testing.assert_allclose(moving[:, 3], 0.0, atol=1e-6)

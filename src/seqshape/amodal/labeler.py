@@ -36,7 +36,7 @@ MODES = ("gt-accumulation", "sc-gt", "sc-seg")
 #: KITTI object type -> KINS category id
 TYPE_TO_CATEGORY = {"Car": 4, "Van": 7, "Truck": 6, "Tram": 5, "Cyclist": 1, "Pedestrian": 2,
                     "Person_sitting": 2, "Misc": 8}
-DEFAULT_REFINE = "backfill"  # measured better for sc-gt (docs/amodal.md, Results)
+DEFAULT_REFINE = "smooth"  # measured best for sc-seg, equal to backfill for sc-gt (docs/amodal.md)
 
 
 @dataclass

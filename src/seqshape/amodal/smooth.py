@@ -5,8 +5,7 @@ estimates of the network are noisy (tens of centimetres, and now and then a head
 by 180 degrees), but a vehicle moves smoothly in the world. :func:`smooth_track_poses`:
 
 1. maps every frame's estimated pose into a common world frame with the ego poses
-   (``ego[t]`` maps frame t's sensor frame into the common frame; identity when the sensor
-   does not move);
+   (``ego[t]`` maps frame t's sensor frame into the common frame);
 2. fits the positions with a local robust quadratic in time: for each frame, the frames
    within ``window`` frames of it, weighted least squares with Tukey biweights recomputed
    from the residuals (``iterations`` times), so a few bad estimates do not pull the fit;
@@ -17,6 +16,11 @@ by 180 degrees), but a vehicle moves smoothly in the world. :func:`smooth_track_
    mean of the estimated headings (angles doubled, averaged, halved: a flip does not count
    against it), turned to the side most estimates point to;
 4. maps the smoothed poses back into each frame's sensor frame.
+
+Without ego poses the sensor's own motion is unknown, so the motion direction in the sensor
+frame says nothing about the heading: the positions are still fitted (relative motion is
+smooth too) and the heading of a track that moves relative to the sensor is, in each frame,
+the axial mean of the estimates within ``2 * window`` frames of it.
 """
 
 from __future__ import annotations
@@ -68,7 +72,7 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     Args:
         poses: ``(T, 4)`` estimated ``(x, y, z, yaw)`` in each frame's sensor frame.
         frames: ``(T,)`` frame numbers (increasing; gaps allowed).
-        ego: ``(T, 4, 4)`` sensor-to-common transforms of those frames, or None (static sensor).
+        ego: ``(T, 4, 4)`` sensor-to-common transforms of those frames, or None (unknown).
         rate_hz: frame rate (for ``min_speed``).
         window: half-width of the local fit, in frames.
         iterations: robust reweighting rounds.
@@ -93,8 +97,11 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     speed = np.linalg.norm(vel[:, :2], axis=1) * rate_hz  # m/s
     yaw = np.full(len(t), axial_mean(w[:, 3]))
     if travel >= min_travel:
-        moving = speed >= min_speed
-        yaw[moving] = np.arctan2(vel[moving, 1], vel[moving, 0])
+        if ego is None:  # sensor motion unknown: no heading from motion, local axial means
+            yaw = np.array([axial_mean(w[np.abs(t - ti) <= 2 * window, 3]) for ti in t])
+        else:
+            moving = speed >= min_speed
+            yaw[moving] = np.arctan2(vel[moving, 1], vel[moving, 0])
     smooth = pose_to_matrix(np.c_[pos, yaw])
     back = np.einsum("tij,tjk->tik", np.linalg.inv(e), smooth)
     return matrix_to_pose(back)
