@@ -18,8 +18,9 @@ runs on the first sequence). Rows:
   (``seqshape label --fit-box``).
 
 Besides all reference instances, every row is also scored over the instances within
-``--max-distance`` metres (default 80 m, about KITTI's labelling range; matching still uses
-all of them), and the per-distance breakdown goes into results.json.
+``--max-distance`` metres (default 80 m, about KITTI's labelling range) and over those with at
+least one LiDAR return inside their box (the only ones any LiDAR-based labeller can reach);
+matching always uses every instance. The per-distance breakdown goes into results.json.
 
 The sc-* rows need estimator weights: ``--checkpoint PATH`` or ``pretrained`` (skipped with a
 note when they cannot be loaded).
@@ -102,24 +103,37 @@ def label_once(root, sequence, name, cfg, estimator, max_frames):
 def reference_subset(root: Path, sequence: str, max_frames: int | None, out_dir: Path) -> Path:
     """The reference KINS file of ``sequence``, cut to its first ``max_frames`` frames.
 
-    The cut copy is written under ``out_dir/reference/amodal`` (the full file when None); each
-    of its annotations carries the ``distance`` of its KITTI label (the copy has no
-    ``label_02`` beside it), so the evaluator's distance breakdown still works.
+    The copy is written under ``out_dir/reference/amodal``. Each annotation gains the
+    ``distance`` of its KITTI label (the copy has no ``label_02`` beside it) and
+    ``lidar_points``, the number of LiDAR returns inside its box: instances without any cannot
+    be labelled from LiDAR at all, whatever the method.
     """
+    from seqshape.data.kitti import crop_box, label_to_pose
+
     full = root / "amodal" / f"{sequence}.json"
-    if max_frames is None:
-        return full
-    frames = set(open_sequence(root, sequence, max_frames).frames)
+    seq = open_sequence(root, sequence, max_frames)
+    frames = set(seq.frames)
     doc = read_kins(full)
     images = [img for img in doc["images"] if int(img.get("frame", -1)) in frames]
     ids = {img["id"] for img in images}
     frame_of = {img["id"]: int(img.get("frame", -1)) for img in images}
     dists = distances_from_labels(full)
+    boxes = {(lab.frame, str(lab.track_id)): label_to_pose(lab, seq.calib)
+             for lab in seq.labels}
+    scans: dict[int, object] = {}
     anns = []
     for a in doc["annotations"]:
-        if a["image_id"] in ids:
-            d = dists.get((frame_of[a["image_id"]], str(a.get("track_id"))))
-            anns.append({**a, "distance": d} if d is not None else a)
+        if a["image_id"] not in ids:
+            continue
+        key = (frame_of[a["image_id"]], str(a.get("track_id")))
+        extra = {}
+        if key in dists:
+            extra["distance"] = dists[key]
+        if key in boxes:
+            if key[0] not in scans:
+                scans[key[0]] = seq.velodyne(key[0])[:, :3]
+            extra["lidar_points"] = len(crop_box(scans[key[0]], *boxes[key]))
+        anns.append({**a, **extra})
     path = out_dir / "reference" / "amodal" / f"{sequence}.json"
     write_kins(path, images, anns, doc.get("categories"))
     return path
@@ -140,6 +154,7 @@ def run_method(root, sequences, name, cfg, estimator, out_dir, max_frames=None,
     results, unmatched = evaluate_files(pairs)
     amodal = summarise(results, unmatched)
     amodal["near"] = summarise(within_distance(results, max_distance))
+    amodal["with_lidar"] = summarise([r for r in results if r.lidar_points > 0])
     amodal["breakdown"] = breakdown(results)
     visible = summarise(*evaluate_files(pairs, segm="i_segm"))
     return amodal, visible, frames, secs
@@ -225,17 +240,22 @@ def main(argv=None) -> int:
     print()
     near = f"<= {args.max_distance:g} m"
     print_table(("Method", "% Miss", "mIoU", f"% Miss ({near})", f"mIoU ({near})",
+                 "% Miss (LiDAR > 0)", "mIoU (LiDAR > 0)",
                  "mIoU (misses = 0)", "visible mIoU", "unmatched preds",
                  "frames/s (median, min-max)"),
                 [(r["method"], f"{r['amodal']['miss_pct']:.2f}", f"{r['amodal']['miou']:.3f}",
                   f"{r['amodal']['near']['miss_pct']:.2f}", f"{r['amodal']['near']['miou']:.3f}",
+                  f"{r['amodal']['with_lidar']['miss_pct']:.2f}",
+                  f"{r['amodal']['with_lidar']['miou']:.3f}",
                   f"{r['amodal']['miou_with_misses']:.3f}", f"{r['visible']['miou']:.3f}",
                   r["amodal"]["unmatched_predictions"],
                   f"{r['fps']:.2f} ({r['fps_range'][0]:.2f}-{r['fps_range'][1]:.2f})")
                  for r in rows])
     instances = rows[0]["amodal"]["n"] if rows else 0
     n_near = rows[0]["amodal"]["near"]["n"] if rows else 0
-    print(f"\n{instances} reference instances ({n_near} within {args.max_distance:g} m), {rows[0]['frames'] if rows else 0} frames; {note}")
+    n_lidar = rows[0]["amodal"]["with_lidar"]["n"] if rows else 0
+    print(f"\n{instances} reference instances ({n_near} within {args.max_distance:g} m, "
+          f"{n_lidar} with LiDAR returns), {rows[0]['frames'] if rows else 0} frames; {note}")
     write_results(out_dir, root, note, args, rows)
     print(f"labels and results.json in {out_dir}")
     return 0

@@ -44,6 +44,7 @@ class InstanceResult:
     occlusion: float  # 1 - visible / amodal area of the reference
     distance: float  # m, NaN when unknown
     track_id: str | None = None
+    lidar_points: float = float("nan")  # LiDAR returns on the vehicle, NaN when unknown
 
     @property
     def missed(self) -> bool:
@@ -245,8 +246,9 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
                 [rle_to_mask(a[segm]) for a in anns],
                 [a["i_area"] for a in anns] if segm == "a_segm" else None, dist,
                 [a.get("track_id") for a in anns])
-            for r in res:
+            for r, a in zip(res, anns, strict=True):
                 r.image_id = img["file_name"]
+                r.lidar_points = float(a.get("lidar_points", np.nan))
             results.extend(res)
             unmatched += un
     return results, unmatched
