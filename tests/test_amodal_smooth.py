@@ -69,3 +69,28 @@ def test_without_ego_poses_the_heading_is_not_taken_from_motion():
     eye = np.broadcast_to(np.eye(4), (20, 4, 4))
     moving = smooth_track_poses(truth, frames, eye)  # static sensor known: heading = motion
     np.testing.assert_allclose(moving[:, 3], 0.0, atol=1e-6)
+
+
+def test_frames_without_points_get_the_fitted_pose():
+    frames = np.arange(12)
+    truth = np.c_[5 + 0.4 * frames, np.zeros(12), np.zeros(12), np.zeros(12)]
+    stale = truth.copy()
+    stale[5:8] = truth[4]  # an empty stretch: the estimator repeats its last pose
+    valid = np.ones(12, bool)
+    valid[5:8] = False
+    out = smooth_track_poses(stale, frames, np.broadcast_to(np.eye(4), (12, 4, 4)),
+                             valid=valid)
+    np.testing.assert_allclose(out[:, :3], truth[:, :3], atol=1e-6)
+
+
+def test_fill_gaps_inserts_short_gaps_only():
+    from seqshape.amodal.association import fill_gaps
+    from seqshape.amodal.refine import TrackInput
+
+    pts = [np.ones((3, 3), np.float32)] * 3
+    tr = TrackInput("t", [0, 3, 20], pts, None, 7, 2)
+    ego = np.broadcast_to(np.eye(4), (30, 4, 4))
+    out = fill_gaps(tr, 5, ego)
+    assert out.frames == [0, 1, 2, 3, 20]  # the 16-frame gap stays open
+    assert [len(p) for p in out.points] == [3, 0, 0, 3, 3]
+    assert out.ego.shape == (5, 4, 4) and (out.category_id, out.label_id) == (7, 2)

@@ -133,8 +133,28 @@ def segment_frame(scan, calib, masks, min_depth: float = 1.0, grow: bool = True,
     return [p.astype(np.float32) for p in parts]
 
 
+def fill_gaps(track, max_gap: int, ego=None):
+    """``track`` with every run of at most ``max_gap`` missing frames between two of its
+    frames filled by frames without points (their pose comes from the smoothed track:
+    refinement ``"smooth"``); ``ego`` ``(F, 4, 4)`` per sequence frame sets ``track.ego``."""
+    from seqshape.amodal.refine import TrackInput
+
+    frames, points = [], []
+    for i, f in enumerate(track.frames):
+        if i and 0 < f - track.frames[i - 1] - 1 <= max_gap:
+            for g in range(track.frames[i - 1] + 1, f):
+                frames.append(g)
+                points.append(np.zeros((0, 3), np.float32))
+        frames.append(f)
+        points.append(track.points[i])
+    out = TrackInput(track.track_id, frames, points, None, track.category_id, track.label_id)
+    if ego is not None and frames and max(frames) < len(ego):
+        out.ego = np.asarray(ego, dtype=np.float64)[frames]
+    return out
+
+
 def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0,
-                     categories=None) -> list:
+                     categories=None, max_gap: int = 0) -> list:
     """sc-seg tracks of a :class:`~seqshape.data.kitti.KittiTrackingSequence`.
 
     Reads the COCO instance masks (``instances_path``; images matched by ``file_name``
@@ -142,7 +162,8 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
     fewer than ``min_points`` points, associates the rest (:func:`associate`; centroids in the
     sequence's first velodyne frame via the oxts ego poses when present) and returns a list of
     :class:`~seqshape.amodal.refine.TrackInput` (no ground-truth poses; ``category_id`` the
-    most frequent category of the track's masks).
+    most frequent category of the track's masks). ``max_gap > 0`` fills the short gaps of
+    each track with empty frames (:func:`fill_gaps`).
     """
     from pathlib import Path
 
@@ -195,4 +216,5 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
         tr.category_id = int(np.bincount(cat_votes[t]).argmax())
         if ego is not None and max(tr.frames) < len(ego):
             tr.ego = np.asarray(ego, dtype=np.float64)[tr.frames]
-    return [tracks[t] for t in sorted(tracks)]
+    out = [tracks[t] for t in sorted(tracks)]
+    return [fill_gaps(t, max_gap, ego) for t in out] if max_gap > 0 else out

@@ -59,6 +59,9 @@ class LabelConfig:
     observed: sc-* modes: add (up to ``observed_max`` of) the frame's own segmented points to
         its completed cloud before the alpha shape. They are measured vehicle surface, so they
         belong inside the amodal mask wherever the completion is misplaced or too small.
+    max_gap: sc-seg with refinement ``"smooth"``: a track missing from at most this many
+        consecutive frames (a missed 2D mask, too few points) is labelled there too, at its
+        smoothed pose (0 disables).
     """
 
     mode: str = "sc-gt"
@@ -74,6 +77,7 @@ class LabelConfig:
     fit_box: bool = False
     observed: bool = True
     observed_max: int = 4096
+    max_gap: int = 5
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -182,7 +186,8 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
 
         inst_path = Path(cfg.instances) if cfg.instances else (
             Path(root) / "instances_2d" / f"{seq.sequence}.json")
-        inputs = segment_sequence(seq, inst_path, min_points=cfg.min_points, gate=cfg.gate)
+        inputs = segment_sequence(seq, inst_path, min_points=cfg.min_points, gate=cfg.gate,
+                                  max_gap=cfg.max_gap if cfg.refine == "smooth" else 0)
     else:
         tracks, inputs = gt_track_inputs(seq, cfg.types)
     timings["segment"] = time.perf_counter() - t0

@@ -20,7 +20,8 @@ that frame's sensor frame:
 * ``"smooth"``: as ``"backfill"``, but without ground-truth poses the best shape is placed
   with the track's smoothed poses (:mod:`seqshape.amodal.smooth`: a robust local fit of the
   bidirectional pose estimates in the world frame given by the ego poses, heading from the
-  motion of moving vehicles). With ground-truth poses it equals ``"backfill"``.
+  motion of moving vehicles; frames without points are not fitted but get the fit's pose at
+  their time). With ground-truth poses it equals ``"backfill"``.
 
 Box fitting (``fit_box=True``, sc-gt only: it needs the ground-truth boxes): every frame's
 estimated shape is taken into the canonical frame with its own estimated pose, stretched per
@@ -134,7 +135,8 @@ def _backfill(track: TrackInput, fwd: Completion, bwd: Completion, bi: Completio
     if smooth and (track.poses is None or not np.all(np.isfinite(track.poses))):
         from seqshape.amodal.smooth import smooth_track_poses
 
-        smoothed = smooth_track_poses(bi.poses, track.frames, track.ego)
+        valid = np.array([len(p) > 0 for p in track.points])
+        smoothed = smooth_track_poses(bi.poses, track.frames, track.ego, valid=valid)
     for t in range(len(track.frames)):
         if track.poses is not None and np.all(np.isfinite(track.poses[t])):
             cands = [track.poses[t]]

@@ -31,14 +31,20 @@ from seqshape.geometry import matrix_to_pose, pose_to_matrix, wrap_angle
 
 
 def _local_fit(t: np.ndarray, y: np.ndarray, window: float, iterations: int,
-               scale: float, max_deg: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Robust local polynomial (degree ``max_deg``) fit of ``y (T, D)`` over times ``t (T,)``:
-    (values, slopes)."""
-    n = len(t)
-    val, slope = np.empty_like(y), np.zeros_like(y)
-    for i in range(n):
-        sel = np.flatnonzero(np.abs(t - t[i]) <= window)
-        dt = t[sel] - t[i]
+               scale: float, max_deg: int = 2, query: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Robust local polynomial (degree ``max_deg``) fit of ``y (T, D)`` over times ``t (T,)``,
+    evaluated at ``query (Q,)`` (default ``t``): (values, slopes), each ``(Q, D)``. A query
+    with no sample within ``window`` uses the nearest samples' window."""
+    query = t if query is None else np.asarray(query, dtype=np.float64)
+    val = np.empty((len(query), y.shape[1]))
+    slope = np.zeros_like(val)
+    for i, tq in enumerate(query):
+        sel = np.flatnonzero(np.abs(t - tq) <= window)
+        if len(sel) == 0:
+            near = t[np.argmin(np.abs(t - tq))]
+            sel = np.flatnonzero(np.abs(t - near) <= window)
+        dt = t[sel] - tq
         deg = min(max_deg, len(np.unique(dt)) - 1)
         a = np.vander(dt, deg + 1, increasing=True)  # (M, deg+1): 1, dt, dt^2
         w = np.ones(len(sel))
@@ -66,7 +72,7 @@ def axial_mean(angles) -> float:
 
 def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: int = 8,
                        iterations: int = 3, scale: float = 0.3, min_travel: float = 3.0,
-                       min_speed: float = 1.0) -> np.ndarray:
+                       min_speed: float = 1.0, valid=None) -> np.ndarray:
     """Smoothed ``(T, 4)`` sensor-frame poses of one track (module doc).
 
     Args:
@@ -79,6 +85,9 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
         scale: residual scale (m) of the Tukey weights (rejects beyond 4.7 * scale).
         min_travel: metres the fitted track must cover to count as moving.
         min_speed: m/s below which a moving track's heading falls back to the estimates.
+        valid: ``(T,)`` bool, the frames whose estimates are fitted (default all); the others
+            (frames without points, whose estimates are stale) get the fit's value at their
+            time. With no valid frame the poses are returned unchanged.
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
     t = np.asarray(frames, dtype=np.float64).reshape(-1)
@@ -86,19 +95,25 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
         raise ValueError(f"{len(poses)} poses but {len(t)} frames")
     if len(poses) == 0:
         return poses.copy()
+    valid = np.ones(len(t), bool) if valid is None else np.asarray(valid, bool).reshape(-1)
+    if not valid.any():
+        return poses.copy()
     e = np.broadcast_to(np.eye(4), (len(t), 4, 4)) if ego is None else np.asarray(
         ego, dtype=np.float64).reshape(-1, 4, 4)
     world = np.einsum("tij,tjk->tik", e, pose_to_matrix(poses))
-    w = matrix_to_pose(world)  # (T, 4): yaw about the common frame's z
-    pos, vel = _local_fit(t, w[:, :3], window, iterations, scale)
-    travel = float(np.linalg.norm(pos[-1, :2] - pos[0, :2]))
+    w = matrix_to_pose(world)[valid]  # (V, 4): yaw about the common frame's z
+    tv = t[valid]
+    pos, vel = _local_fit(tv, w[:, :3], window, iterations, scale, query=t)
+    travel = float(np.linalg.norm(pos[valid][-1, :2] - pos[valid][0, :2]))
     if travel < min_travel:  # parked or creeping: one robust line over the whole track
-        pos, vel = _local_fit(t, w[:, :3], np.inf, iterations, scale, max_deg=1)
+        pos, vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=1, query=t)
     speed = np.linalg.norm(vel[:, :2], axis=1) * rate_hz  # m/s
     yaw = np.full(len(t), axial_mean(w[:, 3]))
     if travel >= min_travel:
         if ego is None:  # sensor motion unknown: no heading from motion, local axial means
-            yaw = np.array([axial_mean(w[np.abs(t - ti) <= 2 * window, 3]) for ti in t])
+            yaw = np.array([axial_mean(w[np.abs(tv - ti) <= 2 * window, 3])
+                            if np.any(np.abs(tv - ti) <= 2 * window) else np.nan for ti in t])
+            yaw = np.where(np.isfinite(yaw), yaw, axial_mean(w[:, 3]))
         else:
             moving = speed >= min_speed
             yaw[moving] = np.arctan2(vel[moving, 1], vel[moving, 0])
