@@ -194,6 +194,11 @@ def main(argv=None) -> int:
     p.add_argument("--max-distance", type=float, default=80.0,
                    help="also score the instances at most this far (m)")
     p.add_argument("--refine", nargs="+", default=list(REFINE_MODES), choices=REFINE_MODES)
+    p.add_argument("--fit-box-below", type=int, default=LabelConfig.fit_box_below,
+                   help="sc-gt: box-fit tracks that fused fewer points (seqshape label "
+                        "--fit-box-below)")
+    p.add_argument("--min-visible-area", type=int, default=LabelConfig.min_visible_area,
+                   help="label instances with at least this visible area (px)")
     p.add_argument("--order", default="pixel", choices=["pixel", "median"])
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads for the estimator (default 1, as `seqshape label`)")
@@ -223,7 +228,9 @@ def main(argv=None) -> int:
         for refine in (args.refine if mode.startswith("sc-") else ["none"]):
             label_mode = {"oracle-shape": "gt-accumulation", "sc-gt-box": "sc-gt"}.get(mode, mode)
             cfg = LabelConfig(mode=label_mode, refine=refine, order=args.order,
-                              checkpoint=args.checkpoint, fit_box=mode == "sc-gt-box")
+                              checkpoint=args.checkpoint, fit_box=mode == "sc-gt-box",
+                              fit_box_below=args.fit_box_below,
+                              min_visible_area=args.min_visible_area)
             name = mode if not mode.startswith("sc-") else f"{mode}/{refine}"
             a, v, n, secs = run_method(root, sequences, name, cfg, estimator, out_dir,
                                        args.frames, args.max_distance)

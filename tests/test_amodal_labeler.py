@@ -226,6 +226,22 @@ def test_fit_box_recovers_size_and_pose(kitti, tmp_path):
     assert fitted["misses"] == 0 and fitted["miou"] > 0.93, fitted
 
 
+def test_fit_box_below_fits_only_tracks_with_few_points(kitti, tmp_path):
+    """Both cars fused more than a handful of points: the default threshold leaves them to
+    the estimator; a threshold above their point counts fits them exactly as ``fit_box``."""
+    def run(**kw):
+        return label_sequence(kitti, "0000", LabelConfig(mode="sc-gt", refine="none", **kw),
+                              ScaledEstimator())
+    plain, everything = run(fit_box_below=0), run(fit_box=True)
+    assert run().annotations == plain.annotations
+    assert run(fit_box_below=10**9).annotations == everything.annotations
+    assert plain.annotations != everything.annotations
+    from seqshape.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="fit_box_below"):
+        LabelConfig(mode="sc-gt", fit_box_below=-1)
+
+
 def test_fit_to_box_hand_case():
     from seqshape.amodal.refine import fit_to_box
 

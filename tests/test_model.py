@@ -154,3 +154,35 @@ def test_canonical_shape_frame_is_placed_by_the_predicted_pose():
     assert all(id(p) in ids for p in net.pose_decoder.parameters())
     with pytest.raises(ConfigError, match="shape_frame"):
         ModelConfig(shape_frame="world")
+
+
+def test_frame_skip_starts_as_the_plain_gru_and_carries_its_state():
+    """frame_skip: zero-initialised, so the same GRU weights give the same outputs; the state
+    doubles (GRU state, projected feature) and an empty frame carries both."""
+    torch.manual_seed(3)
+    plain = ShapePoseNet(TINY, recurrent=True).eval()
+    skip = ShapePoseNet(ModelConfig(**{**TINY.to_dict(), "frame_skip": True}), True).eval()
+    missing = skip.load_state_dict(plain.state_dict(), strict=False)
+    assert sorted(missing.missing_keys) == ["skip.bias", "skip.weight"]
+    assert skip.state_size == 40 and plain.state_size == 20
+    pts, lengths = torch.randn(2, 4, 32, 3), torch.tensor([[5, 0, 9, 32], [1, 2, 3, 0]])
+    a, b = plain(pts, lengths), skip(pts, lengths)
+    torch.testing.assert_close(b["complete"], a["complete"])
+    torch.testing.assert_close(b["hidden"][:, :20], a["hidden"])
+    assert torch.equal(b["hidden"][:, 20:], torch.zeros(2, 20))
+    # with a non-zero projection: the decoder reads h + W f of the last frame with points
+    with torch.no_grad():
+        skip.skip.weight.normal_()
+        skip.skip.bias.normal_()
+    out = skip(pts, lengths)
+    assert not torch.allclose(out["complete"], a["complete"])
+    torch.testing.assert_close(out["complete"][1, 3], out["complete"][1, 2])  # empty frame
+    torch.testing.assert_close(out["complete"][0, 1], out["complete"][0, 0])
+    # the state returned continues the window exactly: frames 0-1, then 2-3 from the state
+    first = skip(pts[:, :2], lengths[:, :2])
+    second = skip(pts[:, 2:], lengths[:, 2:], first["hidden"], first["mean"],
+                  first["seen"][:, -1])
+    torch.testing.assert_close(second["complete"], out["complete"][:, 2:])
+    # the baseline ignores the option
+    base = ShapePoseNet(ModelConfig(**{**TINY.to_dict(), "frame_skip": True}), False)
+    assert base.skip is None and base.state_size == 20

@@ -222,3 +222,18 @@ def test_sc_gt_fine_tune_command_sequence(source, tmp_path):
                  "--checkpoint", str(run / "model.pt"), "--out", str(labels)]) == 0
     assert labels.is_file()
     read_kins(labels)
+
+
+def test_init_adds_a_zero_frame_skip(dataset, source, tmp_path):
+    """--init weights without the frame skip into a run with it: same function at step 0."""
+    cfg = dataclasses.replace(SMOKE.with_stage_steps((0, 0, 0)),
+                              model_overrides={**SMOKE.model_overrides, "frame_skip": True})
+    tr = Trainer(dataset.path, tmp_path / "run", "sequential", cfg, init=source / "model.pt")
+    sd, src = tr.model.state_dict(), _weights(source / "model.pt")
+    assert set(sd) - set(src) == {"skip.weight", "skip.bias"}
+    assert not sd["skip.weight"].any() and all(torch.equal(sd[k], src[k]) for k in src)
+    out = tr.run()
+    pts = [np.random.default_rng(0).normal(size=(50, 3)) + [8, 2, 0]]
+    a = Estimator.from_checkpoint(source / "model.pt").step(["t"], pts)[0]
+    b = Estimator.from_checkpoint(out).step(["t"], pts)[0]
+    np.testing.assert_allclose(b.complete, a.complete, atol=1e-5)

@@ -27,7 +27,10 @@ Box fitting (``fit_box=True``, sc-gt only: it needs the ground-truth boxes): eve
 estimated shape is taken into the canonical frame with its own estimated pose, stretched per
 axis so that its robust extent (1st-99th percentile) fills the box ``(l, w, h)``, and placed
 at the ground-truth pose. The estimator then supplies only what the box cannot: the vehicle's
-outline inside it (bonnet, roof line, wheel arches).
+outline inside it (bonnet, roof line, wheel arches). ``fit_box_below=N`` fits only the tracks
+whose best estimate fused fewer than N points: a vehicle with no or a handful of LiDAR returns
+(far away, hidden) gets the estimator's prior shape, which knows nothing of its size, so the
+box is then the better source of the extent.
 
 Frames with no points (a labelled box with no LiDAR return) do not advance the estimate; with
 ground-truth poses the previous shape is carried to the new pose, else the estimate is the
@@ -183,9 +186,10 @@ def _fit_boxes(track: TrackInput, comp: Completion) -> Completion:
 
 
 def complete_tracks(estimator, tracks: Sequence[TrackInput], refine: str = "none",
-                    fit_box: bool = False) -> list[Completion]:
+                    fit_box: bool = False, fit_box_below: int = 0) -> list[Completion]:
     """Complete every track with one of :data:`REFINE_MODES`, optionally fitted to its
-    ground-truth box (``fit_box``; module doc)."""
+    ground-truth box (module doc): every track with ``fit_box``, else the tracks with a known
+    box whose best estimate fused fewer than ``fit_box_below`` points."""
     if refine not in REFINE_MODES:
         raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
     fwd = complete_forward(estimator, tracks)
@@ -197,6 +201,7 @@ def complete_tracks(estimator, tracks: Sequence[TrackInput], refine: str = "none
         if refine in ("backfill", "smooth"):
             out = [_backfill(t, f, b, c, refine == "smooth")
                    for t, f, b, c in zip(tracks, fwd, bwd, out, strict=True)]
-    if fit_box:
-        out = [_fit_boxes(t, c) for t, c in zip(tracks, out, strict=True)]
-    return out
+    return [_fit_boxes(t, c) if fit_box or (
+        fit_box_below > 0 and t.poses is not None and t.size is not None
+        and int(c.fused.max(initial=0)) < fit_box_below) else c
+        for t, c in zip(tracks, out, strict=True)]

@@ -43,6 +43,14 @@ class ModelConfig:
     directly in the demeaned sensor frame. ``"canonical"`` (extension): the MLP outputs the
     shape in the canonical vehicle frame and it is placed with the predicted pose,
     X_t = R(yaw_t) C_t + (x_t, y_t, z_t); the Chamfer loss then also trains the pose decoder."""
+    frame_skip: bool = False
+    """Extension (not in the paper; sequential model only): the decoders read the GRU state
+    plus a linear projection of the latest frame feature, d_t = h_t + W f_t, so the
+    recurrent model contains the per-frame baseline (h_t = Linear(f_t)) as a special case and
+    need not squeeze the current frame's detail through the GRU gates. W starts at zero, so a
+    model without it loads unchanged (``--init``) and begins as the plain GRU model. The
+    recurrent state is then (h_t, W f_t): an empty frame carries both. Ignored by the
+    baseline."""
 
     def __post_init__(self):
         for name in ("encoder1", "encoder2", "shape_decoder", "pose_decoder"):

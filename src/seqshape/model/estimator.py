@@ -165,7 +165,7 @@ class Estimator:
         st = self._states.get(track_id)
         if st is None:
             seed = [self.seed, zlib.crc32(track_id.encode("utf-8"))]
-            st = _TrackState(torch.zeros(self.model.cfg.hidden), torch.zeros(3), False,
+            st = _TrackState(torch.zeros(self.model.state_size), torch.zeros(3), False,
                              np.random.default_rng(seed))
             self._states[track_id] = st
         return st

@@ -9,8 +9,9 @@ Per frame t (paper Eqs. 3-7)::
     mean_t = masked mean of Z_t                     (last known mean if Z_t is empty)
     f_t    = encoder(Z_t - mean_t)                  PointNet -> max-pool -> concat -> PointNet -> max
     h_t    = GRU(h_{t-1}, f_t)                      (baseline: h_t = Linear(f_t); empty frame: h_t = h_{t-1})
-    X_t    = g_shape(h_t) + mean_t                  (K, 3)
-    T_t    = g_pose(h_t) = (x, y, z, cos, sin) -> (x + mean, y + mean, z + mean, atan2(sin, cos))
+    d_t    = h_t  (extension ``frame_skip``: h_t + W f_t, W zero-initialised)
+    X_t    = g_shape(d_t) + mean_t                  (K, 3)
+    T_t    = g_pose(d_t) = (x, y, z, cos, sin) -> (x + mean, y + mean, z + mean, atan2(sin, cos))
 """
 
 from __future__ import annotations
@@ -83,6 +84,11 @@ class ShapePoseNet(nn.Module):
             self.fusion: nn.Module = nn.GRUCell(cfg.feature_size, cfg.hidden)
         else:
             self.fusion = nn.Linear(cfg.feature_size, cfg.hidden)
+        self.skip: nn.Linear | None = None
+        if self.recurrent and cfg.frame_skip:
+            self.skip = nn.Linear(cfg.feature_size, cfg.hidden)
+            nn.init.zeros_(self.skip.weight)
+            nn.init.zeros_(self.skip.bias)
         self.shape_decoder = mlp([cfg.hidden, *cfg.shape_decoder, 3 * cfg.num_complete])
         self.pose_decoder = mlp([cfg.hidden, *cfg.pose_decoder, 5])
 
@@ -90,9 +96,19 @@ class ShapePoseNet(nn.Module):
     def kind(self) -> str:
         return "sequential" if self.recurrent else "baseline"
 
+    @property
+    def state_size(self) -> int:
+        """Size of the state a track carries between frames: H, or 2H with ``frame_skip``
+        (the GRU state and the projected last frame feature)."""
+        return self.cfg.hidden * (1 if self.skip is None else 2)
+
     def backbone_parameters(self) -> list[nn.Parameter]:
-        """Encoder + fusion (GRU or linear): what stage 1 trains besides the shape decoder."""
-        return list(self.encoder.parameters()) + list(self.fusion.parameters())
+        """Encoder + fusion (GRU or linear, and the frame skip): what stage 1 trains besides
+        the shape decoder."""
+        params = list(self.encoder.parameters()) + list(self.fusion.parameters())
+        if self.skip is not None:
+            params += list(self.skip.parameters())
+        return params
 
     def shape_parameters(self) -> list[nn.Parameter]:
         """Everything the shape (Chamfer) loss reaches: stage 1's parameters.
@@ -113,13 +129,14 @@ class ShapePoseNet(nn.Module):
         Args:
             points: (B, W, N, 3) sensor-frame points, padded per frame.
             lengths: (B, W) number of real points per frame (0 = empty frame).
-            hidden: (B, H) state before the first frame (zeros if None).
+            hidden: (B, S) state before the first frame (zeros if None), S =
+                :attr:`state_size`.
             last_mean: (B, 3) last known frame mean of each track (zeros if None).
             seen: (B,) bool, whether each track had points before (False if None).
 
-        Returns ``h`` (B, W, H) state after each frame, ``means`` (B, W, 3) the offset added
+        Returns ``h`` (B, W, H) decoder input after each frame, ``means`` (B, W, 3) the offset added
         back to each frame's outputs, ``seen`` (B, W) whether any points were seen up to that
-        frame, and ``hidden`` (B, H), ``mean`` (B, 3), ``seen_last`` (B,) to continue from.
+        frame, and ``hidden`` (B, S), ``mean`` (B, 3), ``seen_last`` (B,) to continue from.
         """
         b, w, n, _ = points.shape
         lengths = lengths.to(points.device).long()
@@ -132,18 +149,25 @@ class ShapePoseNet(nn.Module):
             x = torch.cat([x, view.unsqueeze(2).expand(-1, -1, n, -1)], dim=-1)
         feats = self.encoder(x.reshape(b * w, n, x.shape[-1]),
                              mask.reshape(b * w, n)).reshape(b, w, -1)
-        h = points.new_zeros(b, self.cfg.hidden) if hidden is None else hidden
+        h = points.new_zeros(b, self.state_size) if hidden is None else hidden
+        hd = self.cfg.hidden
         mean = points.new_zeros(b, 3) if last_mean is None else last_mean
         seen_t = (torch.zeros(b, dtype=torch.bool, device=points.device) if seen is None
                   else seen.to(points.device).bool())
         hs, means, seens = [], [], []
         for t in range(w):
             has = (lengths[:, t] > 0).unsqueeze(-1)
-            h_new = self.fusion(feats[:, t], h) if self.recurrent else self.fusion(feats[:, t])
+            if not self.recurrent:
+                h_new = self.fusion(feats[:, t])
+            elif self.skip is None:
+                h_new = self.fusion(feats[:, t], h)
+            else:
+                h_new = torch.cat([self.fusion(feats[:, t], h[:, :hd]),
+                                   self.skip(feats[:, t])], dim=-1)
             h = torch.where(has, h_new, h)
             mean = torch.where(has, frame_mean[:, t], mean)
             seen_t = seen_t | has.squeeze(-1)
-            hs.append(h)
+            hs.append(h if self.skip is None else h[:, :hd] + h[:, hd:])
             means.append(mean)
             seens.append(seen_t)
         return {"h": torch.stack(hs, 1), "means": torch.stack(means, 1),

@@ -9,7 +9,7 @@ HELP = "produce amodal mask labels for a KITTI tracking sequence"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from seqshape.amodal.labeler import DEFAULT_REFINE, MODES
+    from seqshape.amodal.labeler import DEFAULT_REFINE, MODES, LabelConfig
     from seqshape.amodal.masks import ORDERS
     from seqshape.amodal.refine import REFINE_MODES
 
@@ -27,6 +27,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fit-box", action="store_true",
                         help="sc-gt: stretch each completed shape to its ground-truth box and "
                              "place it at the box pose")
+    parser.add_argument("--fit-box-below", type=int, default=LabelConfig.fit_box_below,
+                        metavar="N",
+                        help="sc-gt: fit only the tracks whose best estimate fused fewer than N "
+                             "LiDAR points to their box (default %(default)s; 0: never)")
     parser.add_argument("--no-observed", dest="observed", action="store_false",
                         help="sc-*: do not add each frame's own segmented points to its "
                              "completed cloud before the alpha shape")
@@ -85,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--out is required (unless --export-tracks)")
     cfg = LabelConfig(mode=args.mode, checkpoint=args.checkpoint, refine=args.refine,
                       order=args.order, alpha=args.alpha, fit_box=args.fit_box,
-                      observed=args.observed,
+                      fit_box_below=args.fit_box_below, observed=args.observed,
                       instances=str(args.instances) if args.instances else None)
     if args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")

@@ -113,6 +113,15 @@ def load_init(spec: str | Path, kind: str, model_cfg: ModelConfig
         raise DataError(path, f"invalid model_config ({exc})") from None
     run_cfg = model_cfg.to_dict()
     diff = [k for k in run_cfg if src_cfg.get(k) != run_cfg[k]]
+    state_dict = payload["state_dict"]
+    if diff == ["frame_skip"] and run_cfg["frame_skip"] and kind == "sequential":
+        # adding the zero-initialised frame skip keeps the function: start from the weights
+        # and a zero projection
+        h, f = int(run_cfg["hidden"]), int(run_cfg["encoder2"][-1])
+        state_dict = dict(state_dict)
+        state_dict.setdefault("skip.weight", torch.zeros(h, f))
+        state_dict.setdefault("skip.bias", torch.zeros(h))
+        diff = []
     if diff:
         what = ", ".join(f"{k} {src_cfg.get(k)!r} (run: {run_cfg[k]!r})" for k in diff)
         fix = " ".join(f"--model-set {k}={json.dumps(src_cfg.get(k))}" for k in diff)
@@ -128,7 +137,7 @@ def load_init(spec: str | Path, kind: str, model_cfg: ModelConfig
     if isinstance(training, dict):
         record.update(stage=int(training.get("stage", 0)),
                       global_step=int(training.get("global_step", 0)))
-    return payload["state_dict"], record
+    return state_dict, record
 
 
 def _sha256(path: Path) -> str:
