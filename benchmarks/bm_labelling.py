@@ -199,6 +199,8 @@ def main(argv=None) -> int:
                         "--fit-box-below)")
     p.add_argument("--min-visible-area", type=int, default=LabelConfig.min_visible_area,
                    help="label instances with at least this visible area (px)")
+    p.add_argument("--no-mask-fallback", dest="mask_fallback", action="store_false",
+                   help="sc-seg: no mask-only labels (seqshape label --no-mask-fallback)")
     p.add_argument("--order", default="pixel", choices=["pixel", "median"])
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads for the estimator (default 1, as `seqshape label`)")
@@ -230,7 +232,8 @@ def main(argv=None) -> int:
             cfg = LabelConfig(mode=label_mode, refine=refine, order=args.order,
                               checkpoint=args.checkpoint, fit_box=mode == "sc-gt-box",
                               fit_box_below=args.fit_box_below,
-                              min_visible_area=args.min_visible_area)
+                              min_visible_area=args.min_visible_area,
+                              mask_fallback=args.mask_fallback)
             name = mode if not mode.startswith("sc-") else f"{mode}/{refine}"
             a, v, n, secs = run_method(root, sequences, name, cfg, estimator, out_dir,
                                        args.frames, args.max_distance)

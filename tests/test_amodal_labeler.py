@@ -284,3 +284,32 @@ def test_add_observed_appends_an_even_subset():
     assert out[0].shape == (8, 3) and out[1] is cloud  # nothing observed: unchanged
     np.testing.assert_array_equal(out[0][:4], cloud)
     np.testing.assert_array_equal(out[0][4:, 0], [0, 9, 18, 27])  # first, ..., last point
+
+
+def test_sc_seg_labels_a_mask_without_lidar_points(kitti, tmp_path):
+    """A far car's 2D mask with no LiDAR return: labelled from the mask (mask_fallback), at
+    the back of the occlusion order, without a track id; left out when the option is off."""
+    import json
+    import shutil
+
+    root = tmp_path / "kitti"
+    shutil.copytree(kitti, root)
+    calib = kitti_default_calib()
+    far = hull(np.array([90.0, -6.0, -H + SIZE[2] / 2, 0.0]), calib)
+    path = root / "instances_2d" / "0000.json"
+    doc = json.loads(path.read_text())
+    for t in range(N_FRAMES):
+        doc["annotations"].append(coco_annotation(1000 + t, t, 4, far, score=0.9))
+    path.write_text(json.dumps(doc))
+    off = label_sequence(root, "0000", LabelConfig(mode="sc-seg", mask_fallback=False),
+                         OracleEstimator())
+    on = label_sequence(root, "0000", LabelConfig(mode="sc-seg"), OracleEstimator())
+    assert len(off.annotations) == 2 * N_FRAMES
+    assert len(on.annotations) == 3 * N_FRAMES
+    extra = [a for a in on.annotations if "track_id" not in a]
+    assert len(extra) == N_FRAMES
+    for a in extra:
+        assert a["a_area"] == int(far.sum()) and a["depth"] > 80
+    for insts in on.masks.values():
+        (m,) = [m for m in insts if "_mask" in m.track_id]
+        assert m.order == len(insts) - 1 and np.array_equal(m.amodal, far)

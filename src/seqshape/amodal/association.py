@@ -154,7 +154,7 @@ def fill_gaps(track, max_gap: int, ego=None):
 
 
 def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0,
-                     categories=None, max_gap: int = 0) -> list:
+                     categories=None, max_gap: int = 0, unsupported: dict | None = None) -> list:
     """sc-seg tracks of a :class:`~seqshape.data.kitti.KittiTrackingSequence`.
 
     Reads the COCO instance masks (``instances_path``; images matched by ``file_name``
@@ -163,7 +163,9 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
     sequence's first velodyne frame via the oxts ego poses when present) and returns a list of
     :class:`~seqshape.amodal.refine.TrackInput` (no ground-truth poses; ``category_id`` the
     most frequent category of the track's masks). ``max_gap > 0`` fills the short gaps of
-    each track with empty frames (:func:`fill_gaps`).
+    each track with empty frames (:func:`fill_gaps`). ``unsupported``: a dict that receives,
+    per frame, the ``(mask, annotation)`` of every 2D instance dropped for too few points
+    (:mod:`seqshape.amodal.fallback`).
     """
     from pathlib import Path
 
@@ -193,6 +195,8 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
         dets, pts, cats = [], [], []
         for m, (a, p) in enumerate(zip(fa, parts, strict=True)):
             if len(p) < min_points:
+                if unsupported is not None:
+                    unsupported.setdefault(frame, []).append((masks[m], a))
                 continue
             pose = None if ego is None or frame >= len(ego) else ego[frame]
             c = to_common_frame(np.median(p, axis=0), pose)

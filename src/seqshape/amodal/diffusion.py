@@ -82,13 +82,15 @@ def _ransac_plane(cand: np.ndarray, rng, iterations: int, threshold: float,
     return (n[i], float(-offs[i])), int(counts[i])
 
 
-def ground_mask(points, threshold: float = 0.2, sensor_height: float = 1.73,
-                iterations: int = 100, max_tilt_deg: float = 10.0, low_quantile: float = 0.3,
-                seed: int = 0, max_candidates: int = 5000) -> np.ndarray:
-    """Boolean ``(N,)``: which of the ``(N, 3)`` sensor-frame points are ground (module doc)."""
+def ground_plane(points, threshold: float = 0.2, sensor_height: float = 1.73,
+                 iterations: int = 100, max_tilt_deg: float = 10.0, low_quantile: float = 0.3,
+                 seed: int = 0, max_candidates: int = 5000) -> tuple[np.ndarray, float]:
+    """The ground plane ``n . x + d = 0`` (unit ``n``, ``n_z > 0``) of ``(N, 3)`` sensor-frame
+    points (module doc); the flat plane ``z = -sensor_height`` when none is found."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    flat = (np.array([0.0, 0.0, 1.0]), float(sensor_height))
     if len(points) == 0:
-        return np.zeros(0, dtype=bool)
+        return flat
     z_lo = np.quantile(points[:, 2], low_quantile) + 0.5
     cand = points[points[:, 2] <= z_lo]
     rng = np.random.default_rng(seed)
@@ -96,13 +98,24 @@ def ground_mask(points, threshold: float = 0.2, sensor_height: float = 1.73,
         cand = cand[rng.choice(len(cand), max_candidates, replace=False)]
     best, best_count = _ransac_plane(cand, rng, iterations, threshold, max_tilt_deg)
     if best is None or best_count < 3:
-        log.debug("ground: no plane found, height rule at z < %.2f", -sensor_height + threshold)
-        return points[:, 2] < -sensor_height + threshold
+        log.debug("ground: no plane found, flat plane at z = %.2f", -sensor_height)
+        return flat
     n, d = best
     inl = cand[np.abs(cand @ n + d) < threshold]
-    n, d = _fit_plane(inl)
-    if n[2] < np.cos(np.radians(max_tilt_deg)):
-        n, d = best
+    n2, d2 = _fit_plane(inl)
+    if n2[2] < np.cos(np.radians(max_tilt_deg)):
+        return n, d
+    return n2, d2
+
+
+def ground_mask(points, threshold: float = 0.2, sensor_height: float = 1.73,
+                **plane_kwargs) -> np.ndarray:
+    """Boolean ``(N,)``: which of the ``(N, 3)`` sensor-frame points are ground (module doc):
+    less than ``threshold`` above :func:`ground_plane` (or below it)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    n, d = ground_plane(points, threshold, sensor_height, **plane_kwargs)
     return points @ n + d < threshold
 
 

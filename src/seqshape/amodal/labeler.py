@@ -69,6 +69,9 @@ class LabelConfig:
     max_gap: sc-seg with refinement ``"smooth"``: a track missing from at most this many
         consecutive frames (a missed 2D mask, too few points) is labelled there too, at its
         smoothed pose (0 disables).
+    mask_fallback: sc-seg: a 2D instance with fewer than ``min_points`` LiDAR points (a far
+        vehicle) is labelled with its own mask when it is a plausible vehicle on the ground
+        (:mod:`seqshape.amodal.fallback`).
     """
 
     mode: str = "sc-gt"
@@ -86,6 +89,7 @@ class LabelConfig:
     observed: bool = True
     observed_max: int = 4096
     max_gap: int = 5
+    mask_fallback: bool = True
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -191,13 +195,17 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
         raise DataError(Path(root), f"sequence {seq.sequence}: no frames found")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    extra = None
     if cfg.mode == "sc-seg":
         from seqshape.amodal.association import segment_sequence
 
         inst_path = Path(cfg.instances) if cfg.instances else (
             Path(root) / "instances_2d" / f"{seq.sequence}.json")
+        unsupported: dict | None = {} if cfg.mask_fallback else None
         inputs = segment_sequence(seq, inst_path, min_points=cfg.min_points, gate=cfg.gate,
-                                  max_gap=cfg.max_gap if cfg.refine == "smooth" else 0)
+                                  max_gap=cfg.max_gap if cfg.refine == "smooth" else 0,
+                                  unsupported=unsupported)
+        extra = mask_only_labels(seq, unsupported or {})
     else:
         tracks, inputs = gt_track_inputs(seq, cfg.types)
     timings["segment"] = time.perf_counter() - t0
@@ -215,7 +223,7 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
                       zip(inputs, clouds, strict=True)]
     timings["complete"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    result = render_labels(seq, clouds_by_frame(inputs, clouds), cfg)
+    result = render_labels(seq, clouds_by_frame(inputs, clouds), cfg, extra)
     timings["masks"] = time.perf_counter() - t0
     timings["total"] = sum(timings.values())
     timings["frames"] = len(seq.frames)
@@ -223,8 +231,30 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
     return result
 
 
-def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig) -> LabelResult:
-    """Masks and KINS records of every frame from the completed clouds."""
+def mask_only_labels(seq, unsupported: dict) -> dict[int, list[tuple[InstanceMask, int]]]:
+    """``{frame: [(instance, category_id)]}``: the mask-only labels
+    (:mod:`seqshape.amodal.fallback`) of the 2D instances without LiDAR support
+    (``{frame: [(mask, coco annotation)]}``, from
+    :func:`~seqshape.amodal.association.segment_sequence`)."""
+    from seqshape.amodal.diffusion import ground_plane
+    from seqshape.amodal.fallback import mask_instance
+
+    out: dict[int, list[tuple[InstanceMask, int]]] = {}
+    for frame in sorted(unsupported):
+        plane = ground_plane(np.asarray(seq.velodyne(frame))[:, :3])
+        for k, (mask, ann) in enumerate(unsupported[frame]):
+            inst = mask_instance(f"{seq.sequence}_mask{frame:06d}_{k}", mask,
+                                 float(ann.get("score", 1.0)), plane, seq.calib)
+            if inst is not None:
+                out.setdefault(frame, []).append((inst, int(ann["category_id"])))
+    return out
+
+
+def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
+                  extra: dict[int, list[tuple[InstanceMask, int]]] | None = None
+                  ) -> LabelResult:
+    """Masks and KINS records of every frame from the completed clouds, plus the ``extra``
+    instances made otherwise (:func:`mask_only_labels`; no ``track_id``)."""
     from seqshape.amodal.kins import image_entry, kins_annotation, occlusion_order
 
     calib = seq.calib
@@ -234,15 +264,18 @@ def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig) 
                                               unit="frame")):
         images.append(image_entry(image_id, seq.sequence, frame, *size))
         items = by_frame.get(frame, {})
+        more = (extra or {}).get(frame, [])
+        meta = {tid: (inp.category_id, inp.label_id) for tid, (_, inp) in items.items()}
+        meta.update({m.track_id: (cat, None) for m, cat in more})
         insts = frame_masks({tid: c for tid, (c, _) in items.items()}, calib, size,
-                            alpha=cfg.alpha, order=cfg.order)
+                            alpha=cfg.alpha, order=cfg.order, extra=[m for m, _ in more])
         insts = [m for m in insts if np.count_nonzero(m.visible) >= cfg.min_visible_area]
         masks[frame] = insts
         oco, ico = occlusion_order([m.order for m in insts], [m.amodal for m in insts])
         for m, o, i in zip(insts, oco, ico, strict=True):
-            inp = items[m.track_id][1]
-            ann = kins_annotation(len(anns) + 1, image_id, inp.category_id, m.amodal,
-                                  m.visible, o, i, track_id=inp.label_id)
+            cat, label_id = meta[m.track_id]
+            ann = kins_annotation(len(anns) + 1, image_id, cat, m.amodal, m.visible, o, i,
+                                  track_id=label_id)
             ann["depth"] = round(float(m.depth), 3)
             anns.append(ann)
     return LabelResult(images, anns, masks)

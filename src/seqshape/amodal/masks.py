@@ -155,10 +155,14 @@ def resolve_occlusion(insts: list[InstanceMask], order: str = "pixel") -> list[I
 
 def frame_masks(clouds: dict[str, np.ndarray], calib, image_size: tuple[int, int],
                 alpha: float | None = None, order: str = "pixel",
-                min_depth: float = MIN_DEPTH) -> list[InstanceMask]:
+                min_depth: float = MIN_DEPTH, extra=(),
+                max_covered: float = 0.9) -> list[InstanceMask]:
     """Masks of one image from completed clouds ``{track_id: (K, 3) sensor frame}``.
 
     Instances whose amodal mask is empty (behind the camera, outside the image) are left out.
+    ``extra``: instances made otherwise (mask-only labels, :mod:`seqshape.amodal.fallback`),
+    ordered with the others; one whose mask lies more than ``max_covered`` inside the
+    union of the clouds' amodal masks is left out (a vehicle already labelled).
     """
     insts = []
     for tid, pts in clouds.items():
@@ -168,4 +172,12 @@ def frame_masks(clouds: dict[str, np.ndarray], calib, image_size: tuple[int, int
         inst = instance_from_projection(tid, uv, depth, image_size, alpha=alpha)
         if inst.amodal.any():
             insts.append(inst)
+    if len(extra):
+        covered = np.zeros(image_size, dtype=bool)
+        for m in insts:
+            covered |= m.amodal
+        for m in extra:
+            area = np.count_nonzero(m.amodal)
+            if area and np.count_nonzero(m.amodal & covered) <= max_covered * area:
+                insts.append(m)
     return resolve_occlusion(insts, order=order)

@@ -31,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="N",
                         help="sc-gt: fit only the tracks whose best estimate fused fewer than N "
                              "LiDAR points to their box (default %(default)s; 0: never)")
+    parser.add_argument("--no-mask-fallback", dest="mask_fallback", action="store_false",
+                        help="sc-seg: do not label 2D instances without LiDAR points from "
+                             "their own masks")
     parser.add_argument("--no-observed", dest="observed", action="store_false",
                         help="sc-*: do not add each frame's own segmented points to its "
                              "completed cloud before the alpha shape")
@@ -90,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = LabelConfig(mode=args.mode, checkpoint=args.checkpoint, refine=args.refine,
                       order=args.order, alpha=args.alpha, fit_box=args.fit_box,
                       fit_box_below=args.fit_box_below, observed=args.observed,
+                      mask_fallback=args.mask_fallback,
                       instances=str(args.instances) if args.instances else None)
     if args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
