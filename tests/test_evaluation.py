@@ -151,6 +151,11 @@ def test_runner_pose_errors_and_process_pool(dataset):
     assert np.mean(seq["rot_rad"]) < np.mean(base["rot_rad"])
     assert np.all(base["rot_rad"] <= np.pi)
     assert res.settings["n_pred_points"] == {"sequential": 1024, "baseline": 1024}
+    # the shape-only diagnostic: the true shape at a noisy pose, moved to the true pose, is
+    # as good as the oracle's CD without noise (the floor); its placed CD is much worse
+    floor = np.average(res.floors["floor_m"])
+    assert np.mean(base["cd_true_pose_m"]) == pytest.approx(floor, rel=0.05)
+    assert np.mean(base["cd_m"]) > 1.5 * np.mean(base["cd_true_pose_m"])
 
 
 def test_unknown_pose_frames_get_nan_metrics(tmp_path):

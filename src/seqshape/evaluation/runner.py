@@ -12,6 +12,9 @@ What is computed, per method and per scored frame ``t`` of a track:
   track and frame, the same ground-truth subset for every method) on every ``emd_every``-th
   scored frame of the track (counted from its first detection), NaN elsewhere;
 * ``trans_m``, ``rot_rad``: planar translation and wrapped yaw errors of the estimated pose;
+* ``cd_true_pose_m`` (a diagnostic, not in the paper): the CD of the estimated shape alone,
+  taken into its canonical frame with its own estimated pose and placed at the true pose; set
+  beside ``cd_m`` it splits the error between shape and placement;
 * ``n_det``: detections so far (frames with >= 1 point up to and including t), ``n_points``:
   points in frame t, ``distance_m``: planar distance of the true box centre from the sensor.
 
@@ -42,12 +45,13 @@ from seqshape.evaluation.metrics import (
     stable_seed,
     subsample_pair,
 )
+from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
 
 log = logging.getLogger(__name__)
 
 #: Columns of the per-frame records, in CSV order.
 FIELDS = ("method", "track_id", "frame", "n_det", "n_points", "distance_m",
-          "cd_m", "emd_m", "trans_m", "rot_rad")
+          "cd_m", "emd_m", "trans_m", "rot_rad", "cd_true_pose_m")
 _EMD_TASK = 16  # pairs per process-pool task
 
 
@@ -188,15 +192,18 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
     gt_pose = track.poses[t]
     known = bool(np.all(np.isfinite(gt_pose)))
     trans, rot = pose_errors(est.pose, gt_pose) if known else (np.nan, np.nan)
-    cd = np.nan
+    cd = cd_tp = np.nan
     gt = None
     pred = np.asarray(est.complete)
     if known and track.complete is not None and len(pred):
         gt = track.complete_in_frame(t)
         cd = chamfer_distance(pred, gt)
+        if np.all(np.isfinite(est.pose)):
+            cd_tp = chamfer_distance(
+                canonical_to_sensor(sensor_to_canonical(pred, est.pose), gt_pose), gt)
     row = col.add(method=method, track_id=track.track_id, frame=t, n_det=n_det,
                   n_points=len(track.points[t]), distance_m=float(np.hypot(*gt_pose[:2])),
-                  cd_m=cd, emd_m=np.nan, trans_m=trans, rot_rad=rot)
+                  cd_m=cd, emd_m=np.nan, trans_m=trans, rot_rad=rot, cd_true_pose_m=cd_tp)
     if do_emd and gt is not None:
         col.add_emd(row, subsample_pair(pred, gt, emd_points, stable_seed(track.track_id, t)))
 
