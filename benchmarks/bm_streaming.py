@@ -12,6 +12,7 @@ Run: ``python benchmarks/bm_streaming.py [--threads 2] [--repeats 5] [--seed 0]`
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 
 import numpy as np
@@ -64,9 +65,12 @@ def main() -> None:
     torch.manual_seed(args.seed)
     print(f"torch {torch.__version__}, threads {args.threads}, small preset (untrained)")
     rows = []
-    for kind in ("sequential", "baseline"):
-        est = Estimator(ShapePoseNet(MODEL_PRESETS["small"], recurrent=kind == "sequential"),
-                        threads=args.threads)
+    small = MODEL_PRESETS["small"]
+    models = {"sequential": (small, True),
+              "sequential, frame_skip": (dataclasses.replace(small, frame_skip=True), True),
+              "baseline": (small, False)}
+    for kind, (cfg, recurrent) in models.items():
+        est = Estimator(ShapePoseNet(cfg, recurrent=recurrent), threads=args.threads)
         frames = make_frames(args.tracks, args.frames, seed=args.seed)
         rates = throughput(est, frames, args.repeats)
         lat = latency_ms(est, make_frames(1, 100, seed=args.seed + 1), args.repeats)
