@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from test_amodal_labeler import SIZE, H, hull
 
-from seqshape.amodal.fallback import FallbackConfig, ground_depth, mask_instance
+from seqshape.amodal.fallback import FallbackConfig, convex_fill, ground_depth, mask_instance
 from seqshape.camera import kitti_default_calib, project_points
 
 FLAT = (np.array([0.0, 0.0, 1.0]), H)  # the road, z = -1.73 m in the velodyne frame
@@ -32,7 +32,7 @@ def test_far_vehicle_mask_becomes_a_label_at_its_depth(x):
     pose = np.array([x, 1.0, -H + SIZE[2] / 2, 0.3])
     mask = hull(pose, calib)
     inst = mask_instance("far", mask, 0.9, FLAT, calib)
-    assert inst is not None and np.array_equal(inst.amodal, mask)
+    assert inst is not None and np.array_equal(inst.amodal, convex_fill(mask))
     # the bottom edge is the nearest bottom corner's row (2.4 m in front of the centre), to
     # within a pixel row, which spans D^2 / (f H) metres of depth on the road
     _, d_centre = project_points(pose[None, :3], calib)
@@ -63,3 +63,16 @@ def test_implausible_masks_are_rejected():
     assert not near[-1].any() and mask_instance("near", near, 1.0, FLAT, calib) is not None
     assert mask_instance("near", near, 1.0, FLAT, calib, FallbackConfig(min_distance=9.0)) is None
     assert mask_instance("empty", np.zeros_like(mask), 1.0, FLAT, calib) is None
+
+
+def test_convex_fill_closes_notches_and_keeps_convex_masks():
+    m = np.zeros((40, 60), bool)
+    m[10:30, 10:50] = True
+    assert np.array_equal(convex_fill(m), m)  # a rectangle is its own hull
+    notched = m.copy()
+    notched[10:20, 25:30] = False  # a notch from the top edge
+    notched[22, 40] = False  # a hole
+    assert np.array_equal(convex_fill(notched), m)
+    tiny = np.zeros((5, 5), bool)
+    tiny[2, 2] = True
+    assert np.array_equal(convex_fill(tiny), tiny)

@@ -15,8 +15,11 @@ label itself when it is a plausible vehicle standing on the ground:
 * at that depth its pixel height corresponds to ``height_m`` (0.8-5 m) and its pixel width
   to at most ``max_width_m`` (15 m) of a vehicle.
 
-The label's amodal mask is the 2D mask: where a far vehicle is partly hidden, its hidden part
-is unknown and stays out (measured on the kitti-like scenes, docs/amodal.md).
+The label's amodal mask is the convex hull of the 2D mask (a vehicle's silhouette is nearly
+convex; the hull closes the notches a segmenter's ragged outline leaves in a 20-100 px car:
+on the kitti-like scenes it raised the masks of cars without LiDAR returns that reach IoU 0.5
+with the truth from 54 to 60 of 79). Where a far vehicle is partly hidden, its hidden part is
+unknown and stays out (docs/amodal.md).
 """
 
 from __future__ import annotations
@@ -81,7 +84,20 @@ def mask_instance(track_id: str, mask: np.ndarray, score: float,
     width = (cols.max() - cols.min() + 1) * depth / p[0, 0]
     if not cfg.height_m[0] <= height <= cfg.height_m[1] or width > cfg.max_width_m:
         return None
+    amodal = convex_fill(mask)
+    rows, cols = np.nonzero(amodal)
     step = max(1, len(rows) // _MAX_UV)
     uv = np.c_[cols[::step], rows[::step]].astype(np.float64)
-    return InstanceMask(str(track_id), mask.copy(), mask.copy(), float(depth), 0, uv,
+    return InstanceMask(str(track_id), amodal, amodal.copy(), float(depth), 0, uv,
                         np.full(len(uv), float(depth)))
+
+
+def convex_fill(mask: np.ndarray) -> np.ndarray:
+    """The (H, W) bool mask filled to the convex hull of its pixel centres (a superset)."""
+    import cv2
+
+    pts = np.argwhere(mask)[:, ::-1].astype(np.int32)
+    out = np.zeros(mask.shape, np.uint8)
+    if len(pts) >= 3:
+        cv2.fillConvexPoly(out, cv2.convexHull(pts), 1)
+    return out.astype(bool) | mask
