@@ -108,11 +108,12 @@ def associate(frames: Sequence[Sequence[Detection]], gate: float = 3.0,
 
 
 def segment_frame(scan, calib, masks, min_depth: float = 1.0, grow: bool = True,
-                  **diffusion_kwargs):
+                  plane=None, **diffusion_kwargs):
     """Points of each 2D instance of one frame: a list (one per mask) of ``(N_i, 3)`` float32.
 
     ``scan (N, 3+)`` is the velodyne frame; ground points are removed
-    (:func:`~seqshape.amodal.diffusion.ground_mask`), the rest projected with camera 2, the
+    (:func:`~seqshape.amodal.diffusion.ground_mask`, against ``plane`` when given), the rest
+    projected with camera 2, the
     points inside the image labelled by :func:`~seqshape.amodal.diffusion.diffuse_labels`, and
     (``grow``) each instance grown into the connected points outside the image
     (:func:`~seqshape.amodal.diffusion.grow_instances`).
@@ -121,7 +122,7 @@ def segment_frame(scan, calib, masks, min_depth: float = 1.0, grow: bool = True,
     from seqshape.camera import in_image, project_points
 
     pts = np.asarray(scan, dtype=np.float64)[:, :3]
-    pts = pts[~ground_mask(pts)]
+    pts = pts[~ground_mask(pts, plane=plane)]
     uv, depth = project_points(pts, calib)
     keep = in_image(uv, depth, calib, min_depth=min_depth)
     labels = diffuse_labels(pts[keep], uv[keep], masks, **diffusion_kwargs)
@@ -164,12 +165,13 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
     :class:`~seqshape.amodal.refine.TrackInput` (no ground-truth poses; ``category_id`` the
     most frequent category of the track's masks). ``max_gap > 0`` fills the short gaps of
     each track with empty frames (:func:`fill_gaps`). ``unsupported``: a dict that receives,
-    per frame, the ``(mask, annotation)`` of every 2D instance dropped for too few points
-    (:mod:`seqshape.amodal.fallback`).
+    per frame, the ``(mask, annotation, ground plane)`` of every 2D instance dropped for too
+    few points (:mod:`seqshape.amodal.fallback`).
     """
     from pathlib import Path
 
     from seqshape._progress import progress
+    from seqshape.amodal.diffusion import ground_plane
     from seqshape.amodal.kins import read_coco_instances, rle_to_mask
     from seqshape.amodal.refine import TrackInput
     from seqshape.errors import DataError
@@ -191,12 +193,16 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
         image_id = by_name.get(f"{seq.sequence}/{frame:06d}.png")
         fa = anns.get(image_id, []) if image_id is not None else []
         masks = [rle_to_mask(a["segmentation"]) for a in fa]
-        parts = segment_frame(seq.velodyne(frame), calib, masks) if masks else []
+        plane, parts = None, []
+        if masks:
+            scan = np.asarray(seq.velodyne(frame))
+            plane = ground_plane(scan[:, :3])
+            parts = segment_frame(scan, calib, masks, plane=plane)
         dets, pts, cats = [], [], []
         for m, (a, p) in enumerate(zip(fa, parts, strict=True)):
             if len(p) < min_points:
                 if unsupported is not None:
-                    unsupported.setdefault(frame, []).append((masks[m], a))
+                    unsupported.setdefault(frame, []).append((masks[m], a, plane))
                 continue
             pose = None if ego is None or frame >= len(ego) else ego[frame]
             c = to_common_frame(np.median(p, axis=0), pose)

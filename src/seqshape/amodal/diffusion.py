@@ -109,13 +109,14 @@ def ground_plane(points, threshold: float = 0.2, sensor_height: float = 1.73,
 
 
 def ground_mask(points, threshold: float = 0.2, sensor_height: float = 1.73,
-                **plane_kwargs) -> np.ndarray:
+                plane: tuple[np.ndarray, float] | None = None, **plane_kwargs) -> np.ndarray:
     """Boolean ``(N,)``: which of the ``(N, 3)`` sensor-frame points are ground (module doc):
-    less than ``threshold`` above :func:`ground_plane` (or below it)."""
+    less than ``threshold`` above ``plane`` (or below it), by default :func:`ground_plane`."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
-    n, d = ground_plane(points, threshold, sensor_height, **plane_kwargs)
+    n, d = plane if plane is not None else ground_plane(points, threshold, sensor_height,
+                                                        **plane_kwargs)
     return points @ n + d < threshold
 
 

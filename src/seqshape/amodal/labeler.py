@@ -216,8 +216,7 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
         est = estimator if estimator is not None else load_estimator(cfg.checkpoint)
         est.reset()
         clouds = [c.clouds for c in complete_tracks(
-            est, inputs, cfg.refine, cfg.fit_box,
-            cfg.fit_box_below if cfg.mode == "sc-gt" else 0)]
+            est, inputs, cfg.refine, cfg.fit_box, cfg.fit_box_below)]
         if cfg.observed:
             clouds = [add_observed(inp, cl, cfg.observed_max) for inp, cl in
                       zip(inputs, clouds, strict=True)]
@@ -234,15 +233,13 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
 def mask_only_labels(seq, unsupported: dict) -> dict[int, list[tuple[InstanceMask, int]]]:
     """``{frame: [(instance, category_id)]}``: the mask-only labels
     (:mod:`seqshape.amodal.fallback`) of the 2D instances without LiDAR support
-    (``{frame: [(mask, coco annotation)]}``, from
+    (``{frame: [(mask, coco annotation, ground plane)]}``, from
     :func:`~seqshape.amodal.association.segment_sequence`)."""
-    from seqshape.amodal.diffusion import ground_plane
     from seqshape.amodal.fallback import mask_instance
 
     out: dict[int, list[tuple[InstanceMask, int]]] = {}
     for frame in sorted(unsupported):
-        plane = ground_plane(np.asarray(seq.velodyne(frame))[:, :3])
-        for k, (mask, ann) in enumerate(unsupported[frame]):
+        for k, (mask, ann, plane) in enumerate(unsupported[frame]):
             inst = mask_instance(f"{seq.sequence}_mask{frame:06d}_{k}", mask,
                                  float(ann.get("score", 1.0)), plane, seq.calib)
             if inst is not None:

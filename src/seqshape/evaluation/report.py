@@ -59,8 +59,6 @@ def method_summary(rec: dict[str, np.ndarray]) -> tuple[dict[str, float | None],
                           "n_tracks": int(len(np.unique(rec["track_id"])))}
     tracks = rec["track_id"]
     for key, (col, scale) in {**METRICS, **EXTRA_METRICS}.items():
-        if col not in rec:
-            continue
         v = rec[col] * scale
         (table if key in METRICS else details)[key] = _mean(v)
         details[f"{key}_median"] = _median(v)
