@@ -1,5 +1,10 @@
-"""Break an evaluation's per-frame errors down by the number of detections so far, and split
-the rotation error into 180-degree flips and the rest (docs/results.md, Table I notes).
+"""Break an evaluation's per-frame errors down by the number of detections so far, split
+the rotation error into 180-degree flips and the rest, and split the tracks into parked and
+moving vehicles (docs/results.md, Table I notes).
+
+Parked: the vehicle's distance to the sensor does not change over its track (spread below
+1 cm). With the generator's fixed sensor and no range noise such a track repeats one view, so
+it holds a single sample of the estimator's error however many frames it has.
 
 Input: the ``per_frame.csv`` that ``seqshape evaluate`` writes (no timing; not part of
 ``make bench``).
@@ -28,8 +33,54 @@ def read(path) -> dict[str, dict[str, np.ndarray]]:
     for m in sorted({r["method"] for r in rows}):
         sel = [r for r in rows if r["method"] == m]
         out[m] = {k: np.array([float(r[k]) if r[k] else np.nan for r in sel])
-                  for k in ("n_det", "cd_m", "cd_true_pose_m", "trans_m", "rot_rad")}
+                  for k in ("n_det", "cd_m", "cd_true_pose_m", "trans_m", "rot_rad", "emd_m",
+                            "distance_m")}
+        out[m]["track_id"] = np.array([r["track_id"] for r in sel])
     return out
+
+
+def parked_tracks(rec: dict[str, np.ndarray], spread_m: float = 0.01) -> set[str]:
+    """Track ids whose distance to the sensor spans less than ``spread_m``."""
+    out = set()
+    for tid in np.unique(rec["track_id"]):
+        d = rec["distance_m"][rec["track_id"] == tid]
+        if np.ptp(d) < spread_m:
+            out.add(str(tid))
+    return out
+
+
+def _fmt(values: np.ndarray, scale: float, digits: int) -> str:
+    """The NaN-skipping mean of ``values * scale``, or "n/a" when none is known."""
+    v = values[np.isfinite(values)]
+    return f"{scale * v.mean():.{digits}f}" if len(v) else "n/a"
+
+
+def motion_table(data: dict[str, dict[str, np.ndarray]]) -> None:
+    """Errors of parked and moving tracks side by side, and per-track CD wins."""
+    parked = parked_tracks(next(iter(data.values())))
+    rows = []
+    for group in ("parked", "moving"):
+        track_cd: dict[str, dict[str, float]] = {}
+        for m, rec in data.items():
+            sel = np.isin(rec["track_id"], sorted(parked)) == (group == "parked")
+            tids = np.unique(rec["track_id"][sel])
+            for tid in tids:
+                track_cd.setdefault(str(tid), {})[m] = float(
+                    np.nanmean(rec["cd_m"][rec["track_id"] == tid]))
+            rows.append([group, m, str(len(tids)), str(int(sel.sum())),
+                         f"{100 * np.nanmean(rec['cd_m'][sel]):.2f}",
+                         _fmt(rec["emd_m"][sel], 1.0, 3),
+                         f"{100 * np.nanmean(rec['trans_m'][sel]):.2f}",
+                         f"{np.degrees(np.nanmean(rec['rot_rad'][sel])):.2f}"])
+        if {"sequential", "baseline"} <= set(data):
+            wins = sum(v["sequential"] < v["baseline"] for v in track_cd.values())
+            rows[-1].append(f"{wins} of {len(track_cd)}")
+            rows[-2].append("")
+    width = max(len(r) for r in rows)
+    rows = [r + [""] * (width - len(r)) for r in rows]
+    head = ["tracks", "method", "tracks", "frames", "CD (cm)", "EMD (m)", "translation (cm)",
+            "rotation (deg)", "tracks where sequential has the lower CD"][:width]
+    print_table(head, rows)
 
 
 def main() -> None:
@@ -60,6 +111,8 @@ def main() -> None:
     print_table(["method", "rotation mean (deg)", "flips > 150 deg (% frames)",
                  "flips' share of the mean (deg)", "mean without flips (deg)", "median (deg)"],
                 flips)
+    print()
+    motion_table(data)
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ from _bench import bench_parser, print_table, time_it
 
 os.environ.setdefault("SEQSHAPE_PROGRESS", "0")
 
+from seqshape.amodal.align import AlignConfig  # noqa: E402
 from seqshape.amodal.evaluate import (  # noqa: E402
     breakdown,
     distances_from_labels,
@@ -184,6 +185,8 @@ def main(argv=None) -> int:
     p = bench_parser(__doc__, repeats=3, min_repeats=0,
                      repeats_help="timed runs for frames/s (0: skip)")
     p.add_argument("--scenes", type=Path, default=None, help="scene set (generated if absent)")
+    p.add_argument("--skip", type=int, default=0,
+                   help="start at the scene set's sequence number SKIP (held-out checks)")
     p.add_argument("--sequences", type=int, default=2,
                    help="evaluate the first N sequences (and generate N when absent)")
     p.add_argument("--frames", type=int, default=40,
@@ -201,14 +204,22 @@ def main(argv=None) -> int:
                    help="label instances with at least this visible area (px)")
     p.add_argument("--no-mask-fallback", dest="mask_fallback", action="store_false",
                    help="sc-seg: no mask-only labels (seqshape label --no-mask-fallback)")
+    p.add_argument("--trim", type=float, default=LabelConfig.trim,
+                   help="sc-*: trim completed shapes to their robust box (seqshape label --trim)")
+    p.add_argument("--no-align", dest="align", action="store_false",
+                   help="sc-seg: no mask-guided placement (seqshape label --no-align)")
+    p.add_argument("--align-max-points", type=int, default=AlignConfig.max_points,
+                   help="sc-seg: move only vehicles with fewer own LiDAR returns (0: all)")
+    p.add_argument("--align-min-inside", type=float, default=AlignConfig.min_inside,
+                   help="sc-seg: share of a vehicle's own returns kept inside its moved mask")
     p.add_argument("--order", default="pixel", choices=["pixel", "median"])
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads for the estimator (default 1, as `seqshape label`)")
     p.add_argument("--out", type=Path, default=None, help="labels + results.json here")
     args = p.parse_args(argv)
 
-    root = ensure_scenes(args.scenes, args.sequences, args.frames, args.seed)
-    sequences = KittiTrackingSequence.sequences(root)[:args.sequences]
+    root = ensure_scenes(args.scenes, args.skip + args.sequences, args.frames, args.seed)
+    sequences = KittiTrackingSequence.sequences(root)[args.skip:args.skip + args.sequences]
     out_dir = args.out or Path(tempfile.mkdtemp(prefix="bm_labelling_"))
     estimator, note = None, ""
     if any(m.startswith("sc-") for m in args.modes):
@@ -233,7 +244,10 @@ def main(argv=None) -> int:
                               checkpoint=args.checkpoint, fit_box=mode == "sc-gt-box",
                               fit_box_below=args.fit_box_below,
                               min_visible_area=args.min_visible_area,
-                              mask_fallback=args.mask_fallback)
+                              mask_fallback=args.mask_fallback, align=args.align,
+                              trim=args.trim,
+                              align_config=AlignConfig(max_points=args.align_max_points,
+                                                       min_inside=args.align_min_inside))
             name = mode if not mode.startswith("sc-") else f"{mode}/{refine}"
             a, v, n, secs = run_method(root, sequences, name, cfg, estimator, out_dir,
                                        args.frames, args.max_distance)

@@ -84,3 +84,28 @@ def test_instances_behind_camera_are_dropped(scene):
     behind = canonical_to_sensor(clouds["near"], np.array([-20.0, 0, 0, 0]))
     insts = frame_masks({"behind": behind}, calib, SIZE)
     assert insts == []
+
+
+def test_mask_guided_placement_moves_a_misplaced_far_car(scene):
+    """The far car's completion is 0.4 m off sideways; its 2D mask (the true visible part)
+    pulls it back: the amodal IoU with the truth rises, the near car is left alone, and the
+    guide of a car given its own LiDAR returns cannot drag it off them."""
+    from seqshape.amodal.align import AlignConfig
+
+    calib, clouds, refs = scene
+    size = np.array([4.5, 1.8, 1.5])
+    off = dict(clouds, far=box_surface(size, np.array([18.0, -1.2, -0.98, -0.2]), seed=1))
+    truth = {m.track_id: m for m in frame_masks(clouds, calib, SIZE)}
+    guides = {k: m.visible for k, m in truth.items()}
+    plain = {m.track_id: m for m in frame_masks(off, calib, SIZE)}
+    moved = {m.track_id: m for m in frame_masks(off, calib, SIZE, guides=guides,
+                                                 align=AlignConfig())}
+    assert iou(plain["far"].amodal, refs["far"]) < 0.85
+    assert iou(moved["far"].amodal, refs["far"]) > iou(plain["far"].amodal, refs["far"]) + 0.08
+    assert np.array_equal(moved["near"].amodal, plain["near"].amodal)
+    assert moved["near"].order == 0 and moved["far"].order == 1
+    # its own returns (the misplaced cloud's visible side) keep it where it is
+    pinned = {m.track_id: m for m in frame_masks(
+        off, calib, SIZE, guides=guides, align=AlignConfig(min_inside=1.0),
+        guide_points={"far": off["far"][::10]})}
+    assert np.array_equal(pinned["far"].amodal, plain["far"].amodal)

@@ -140,15 +140,18 @@ def fill_gaps(track, max_gap: int, ego=None):
     refinement ``"smooth"``); ``ego`` ``(F, 4, 4)`` per sequence frame sets ``track.ego``."""
     from seqshape.amodal.refine import TrackInput
 
-    frames, points = [], []
+    frames, points, masks = [], [], []
     for i, f in enumerate(track.frames):
         if i and 0 < f - track.frames[i - 1] - 1 <= max_gap:
             for g in range(track.frames[i - 1] + 1, f):
                 frames.append(g)
                 points.append(np.zeros((0, 3), np.float32))
+                masks.append(None)
         frames.append(f)
         points.append(track.points[i])
-    out = TrackInput(track.track_id, frames, points, None, track.category_id, track.label_id)
+        masks.append(None if track.masks is None else track.masks[i])
+    out = TrackInput(track.track_id, frames, points, None, track.category_id, track.label_id,
+                     masks=None if track.masks is None else masks)
     if ego is not None and frames and max(frames) < len(ego):
         out.ego = np.asarray(ego, dtype=np.float64)[frames]
     return out
@@ -189,6 +192,7 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
     ego = seq.ego_poses
     calib = seq.calib
     per_frame, det_points, det_cats = [], [], []
+    rles: dict[int, list] = {}  # frame -> the RLE of each detection (by Detection.index)
     for frame in progress(seq.frames, desc=f"segment {seq.sequence}", unit="frame"):
         image_id = by_name.get(f"{seq.sequence}/{frame:06d}.png")
         fa = anns.get(image_id, []) if image_id is not None else []
@@ -207,6 +211,7 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
             pose = None if ego is None or frame >= len(ego) else ego[frame]
             c = to_common_frame(np.median(p, axis=0), pose)
             dets.append(Detection(frame, c, masks[m], len(dets)))
+            rles.setdefault(frame, []).append(a["segmentation"])
             pts.append(p)
             cats.append(int(a["category_id"]))
         per_frame.append(dets)
@@ -218,9 +223,10 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
     for dets, pts, cats, tids in zip(per_frame, det_points, det_cats, ids, strict=True):
         for d, p, c, t in zip(dets, pts, cats, tids, strict=True):
             tr = tracks.setdefault(t, TrackInput(f"{seq.sequence}_seg{t:04d}", [], [], None,
-                                                 4, t))
+                                                 4, t, masks=[]))
             tr.frames.append(d.frame)
             tr.points.append(p)
+            tr.masks.append(rles[d.frame][d.index])
             cat_votes.setdefault(t, []).append(c)
     for t, tr in tracks.items():
         tr.category_id = int(np.bincount(cat_votes[t]).argmax())

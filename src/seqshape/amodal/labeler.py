@@ -26,6 +26,7 @@ import numpy as np
 
 from seqshape._progress import progress
 from seqshape.amodal.accumulate import gt_accumulation_clouds
+from seqshape.amodal.align import AlignConfig
 from seqshape.amodal.masks import ORDERS, InstanceMask, frame_masks
 from seqshape.amodal.refine import REFINE_MODES, TrackInput, complete_tracks
 from seqshape.errors import ConfigError, DataError
@@ -72,6 +73,13 @@ class LabelConfig:
     mask_fallback: sc-seg: a 2D instance with fewer than ``min_points`` LiDAR points (a far
         vehicle) is labelled with its own mask when it is a plausible vehicle on the ground
         (:mod:`seqshape.amodal.fallback`).
+    trim: sc-* modes: drop the points of each completed shape outside its robust box (per
+        axis the ``trim`` and ``100 - trim`` percentiles, in its own canonical frame; 0 keeps
+        all). The estimator's output carries a sparse fringe of stray points, worst for far
+        vehicles with few returns, and the alpha shape of a small projection takes them in.
+    align: sc-seg: move each completed vehicle in the image so that its predicted visible mask
+        best matches the 2D instance mask its points came from (:mod:`seqshape.amodal.align`,
+        with ``align_config``); frames filled in a gap have no mask and are not moved.
     """
 
     mode: str = "sc-gt"
@@ -90,6 +98,9 @@ class LabelConfig:
     observed_max: int = 4096
     max_gap: int = 5
     mask_fallback: bool = True
+    trim: float = 1.0
+    align: bool = True
+    align_config: AlignConfig = field(default_factory=AlignConfig)
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -101,6 +112,8 @@ class LabelConfig:
         if self.fit_box and self.mode != "sc-gt":
             raise ConfigError(f"fit_box needs ground-truth 3D boxes: only mode sc-gt, not "
                               f"{self.mode}")
+        if not 0.0 <= self.trim < 50.0:
+            raise ConfigError(f"trim must be a percentage in [0, 50), got {self.trim}")
         if self.fit_box_below < 0:
             raise ConfigError(f"fit_box_below must be >= 0, got {self.fit_box_below}")
 
@@ -216,7 +229,7 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
         est = estimator if estimator is not None else load_estimator(cfg.checkpoint)
         est.reset()
         clouds = [c.clouds for c in complete_tracks(
-            est, inputs, cfg.refine, cfg.fit_box, cfg.fit_box_below)]
+            est, inputs, cfg.refine, cfg.fit_box, cfg.fit_box_below, cfg.trim)]
         if cfg.observed:
             clouds = [add_observed(inp, cl, cfg.observed_max) for inp, cl in
                       zip(inputs, clouds, strict=True)]
@@ -257,6 +270,14 @@ def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
     calib = seq.calib
     size = (calib.height, calib.width)
     images, anns, masks = [], [], {}
+    # track id -> frame -> (RLE of its 2D mask, position of the frame in the track)
+    mask_index: dict[str, dict[int, tuple[dict, int]]] = {}
+    for items in by_frame.values():
+        for tid, (_, inp) in items.items():
+            if inp.masks is not None and tid not in mask_index:
+                mask_index[tid] = {f: (r, i) for i, (f, r) in
+                                   enumerate(zip(inp.frames, inp.masks, strict=True))
+                                   if r is not None}
     for image_id, frame in enumerate(progress(seq.frames, desc=f"masks {seq.sequence}",
                                               unit="frame")):
         images.append(image_entry(image_id, seq.sequence, frame, *size))
@@ -264,8 +285,11 @@ def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
         more = (extra or {}).get(frame, [])
         meta = {tid: (inp.category_id, inp.label_id) for tid, (_, inp) in items.items()}
         meta.update({m.track_id: (cat, None) for m, cat in more})
+        guides, own = _guides(items, frame, mask_index) if cfg.align else (None, None)
         insts = frame_masks({tid: c for tid, (c, _) in items.items()}, calib, size,
-                            alpha=cfg.alpha, order=cfg.order, extra=[m for m, _ in more])
+                            alpha=cfg.alpha, order=cfg.order, extra=[m for m, _ in more],
+                            guides=guides, align=cfg.align_config if cfg.align else None,
+                            guide_points=own)
         insts = [m for m in insts if np.count_nonzero(m.visible) >= cfg.min_visible_area]
         masks[frame] = insts
         oco, ico = occlusion_order([m.order for m in insts], [m.amodal for m in insts])
@@ -276,6 +300,21 @@ def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
             ann["depth"] = round(float(m.depth), 3)
             anns.append(ann)
     return LabelResult(images, anns, masks)
+
+
+def _guides(items: dict, frame: int, mask_index: dict
+            ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """``({track_id: (h, w) bool}, {track_id: (M, 3)})``: the 2D instance mask of each track of
+    ``frame`` that has one, and that track's own segmented points of the frame."""
+    from seqshape.amodal.kins import rle_to_mask
+
+    masks, points = {}, {}
+    for tid, (_, inp) in items.items():
+        hit = mask_index.get(tid, {}).get(frame)
+        if hit is not None:
+            masks[tid] = rle_to_mask(hit[0])
+            points[tid] = inp.points[hit[1]]
+    return masks, points
 
 
 def write_labels(path, result: LabelResult) -> None:

@@ -156,13 +156,19 @@ def resolve_occlusion(insts: list[InstanceMask], order: str = "pixel") -> list[I
 def frame_masks(clouds: dict[str, np.ndarray], calib, image_size: tuple[int, int],
                 alpha: float | None = None, order: str = "pixel",
                 min_depth: float = MIN_DEPTH, extra=(),
-                max_covered: float = 0.9) -> list[InstanceMask]:
+                max_covered: float = 0.9, guides=None, align=None,
+                guide_points=None) -> list[InstanceMask]:
     """Masks of one image from completed clouds ``{track_id: (K, 3) sensor frame}``.
 
     Instances whose amodal mask is empty (behind the camera, outside the image) are left out.
     ``extra``: instances made otherwise (mask-only labels, :mod:`seqshape.amodal.fallback`),
     ordered with the others; one whose mask lies more than ``max_covered`` inside the
     union of the clouds' amodal masks is left out (a vehicle already labelled).
+    ``guides``: ``{track_id: (h, w) bool}`` 2D instance masks; with ``align`` (an
+    :class:`~seqshape.amodal.align.AlignConfig`) those instances are moved in the image to
+    match them (:mod:`seqshape.amodal.align`) and the occlusion is resolved again;
+    ``guide_points`` ``{track_id: (M, 3) sensor frame}``, each vehicle's own LiDAR returns of
+    this frame, keep it from moving off them.
     """
     insts = []
     for tid, pts in clouds.items():
@@ -180,4 +186,12 @@ def frame_masks(clouds: dict[str, np.ndarray], calib, image_size: tuple[int, int
             area = np.count_nonzero(m.amodal)
             if area and np.count_nonzero(m.amodal & covered) <= max_covered * area:
                 insts.append(m)
-    return resolve_occlusion(insts, order=order)
+    insts = resolve_occlusion(insts, order=order)
+    if align is not None and guides:
+        from seqshape.amodal.align import align_instances
+
+        pix = {tid: project_cloud(p, calib, image_size, min_depth=min_depth)[0]
+               for tid, p in (guide_points or {}).items()}
+        if align_instances(insts, guides, align, pix):
+            insts = resolve_occlusion(insts, order=order)
+    return insts

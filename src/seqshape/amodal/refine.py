@@ -65,6 +65,7 @@ class TrackInput:
     label_id: int = 0  # the integer track id written to the labels
     size: np.ndarray | None = None  # (3,) ground-truth box (l, w, h), or None when unknown
     ego: np.ndarray | None = None  # (T, 4, 4) sensor -> common frame per listed frame
+    masks: list | None = None  # sc-seg: per listed frame the COCO RLE of its 2D mask, or None
 
 
 @dataclass
@@ -185,11 +186,31 @@ def _fit_boxes(track: TrackInput, comp: Completion) -> Completion:
     return Completion(clouds, poses, comp.fused)
 
 
+def trim_to_extent(shape: np.ndarray, percent: float) -> np.ndarray:
+    """The points of a canonical shape ``(K, 3)`` inside its robust box: per axis between the
+    ``percent`` and ``100 - percent`` percentiles (0 keeps every point)."""
+    shape = np.asarray(shape)
+    if percent <= 0 or len(shape) == 0:
+        return shape
+    a, b = np.percentile(shape, [percent, 100.0 - percent], axis=0)
+    return shape[np.all((shape >= a) & (shape <= b), axis=1)]
+
+
+def _trim(comp: Completion, percent: float) -> Completion:
+    """Every frame's cloud trimmed to its robust box in its own canonical frame."""
+    clouds = [c if c is None or len(c) == 0 else canonical_to_sensor(
+        trim_to_extent(sensor_to_canonical(c, p), percent), p).astype(np.float32)
+        for c, p in zip(comp.clouds, comp.poses, strict=True)]
+    return Completion(clouds, comp.poses, comp.fused)
+
+
 def complete_tracks(estimator, tracks: Sequence[TrackInput], refine: str = "none",
-                    fit_box: bool = False, fit_box_below: int = 0) -> list[Completion]:
+                    fit_box: bool = False, fit_box_below: int = 0,
+                    trim: float = 0.0) -> list[Completion]:
     """Complete every track with one of :data:`REFINE_MODES`, optionally fitted to its
     ground-truth box (module doc): every track with ``fit_box``, else the tracks with a known
-    box whose best estimate fused fewer than ``fit_box_below`` points."""
+    box whose best estimate fused fewer than ``fit_box_below`` points. ``trim`` > 0 drops the
+    points outside each shape's robust box (:func:`trim_to_extent`, in percent per side)."""
     if refine not in REFINE_MODES:
         raise ValueError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
     fwd = complete_forward(estimator, tracks)
@@ -201,7 +222,8 @@ def complete_tracks(estimator, tracks: Sequence[TrackInput], refine: str = "none
         if refine in ("backfill", "smooth"):
             out = [_backfill(t, f, b, c, refine == "smooth")
                    for t, f, b, c in zip(tracks, fwd, bwd, out, strict=True)]
-    return [_fit_boxes(t, c) if fit_box or (
+    out = [_fit_boxes(t, c) if fit_box or (
         fit_box_below > 0 and t.poses is not None and t.size is not None
         and int(c.fused.max(initial=0)) < fit_box_below) else c
         for t, c in zip(tracks, out, strict=True)]
+    return [_trim(c, trim) for c in out] if trim > 0 else out

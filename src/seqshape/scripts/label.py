@@ -34,6 +34,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-mask-fallback", dest="mask_fallback", action="store_false",
                         help="sc-seg: do not label 2D instances without LiDAR points from "
                              "their own masks")
+    parser.add_argument("--trim", type=float, default=LabelConfig.trim, metavar="P",
+                        help="sc-*: drop the points of each completed shape outside its "
+                             "P..100-P percentile box (default %(default)s; 0: keep all)")
+    parser.add_argument("--no-align", dest="align", action="store_false",
+                        help="sc-seg: do not move the completed vehicles in the image to match "
+                             "their 2D instance masks")
     parser.add_argument("--no-observed", dest="observed", action="store_false",
                         help="sc-*: do not add each frame's own segmented points to its "
                              "completed cloud before the alpha shape")
@@ -93,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = LabelConfig(mode=args.mode, checkpoint=args.checkpoint, refine=args.refine,
                       order=args.order, alpha=args.alpha, fit_box=args.fit_box,
                       fit_box_below=args.fit_box_below, observed=args.observed,
-                      mask_fallback=args.mask_fallback,
+                      mask_fallback=args.mask_fallback, align=args.align, trim=args.trim,
                       instances=str(args.instances) if args.instances else None)
     if args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
