@@ -105,3 +105,26 @@ def test_align_config_rejects_bad_values():
         AlignConfig(min_gain=2)
     with pytest.raises(ConfigError):
         AlignConfig(max_px=-3)
+
+
+def test_points_inside_matches_brute_force():
+    from seqshape.amodal.align import points_inside, shift_scores
+
+    amodal = rect(20, 35, 30, 55)
+    rng = np.random.default_rng(3)
+    uv = np.c_[rng.uniform(25, 60, 40), rng.uniform(15, 40, 40)]
+    uv = np.r_[uv, [[-5.0, 10.0], [200.0, 3.0]]]  # outside the image: not counted
+    px = np.floor(uv[:40]).astype(int)
+    ry, rx = 4, 6
+    want = np.zeros((2 * ry + 1, 2 * rx + 1))
+    for dy in range(-ry, ry + 1):
+        for dx in range(-rx, rx + 1):
+            s = shift_mask(amodal, dy, dx)
+            want[dy + ry, dx + rx] = s[px[:, 1], px[:, 0]].mean()
+    np.testing.assert_allclose(points_inside(amodal, uv, ry, rx), want, atol=1e-12)
+    # the batched call gives the same IoUs as without points
+    guide, occ = rect(22, 36, 33, 57), rect(0, H, 0, 35)
+    ious, inside = shift_scores(amodal, guide, occ, ry, rx, uv)
+    np.testing.assert_allclose(ious, brute_ious(amodal, guide, occ, ry, rx), atol=1e-9)
+    np.testing.assert_allclose(inside, want, atol=1e-12)
+    assert np.all(points_inside(amodal, np.zeros((0, 2)), 2, 2) == 1.0)

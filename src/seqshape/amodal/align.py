@@ -13,8 +13,9 @@ own extent (at most ``max_px``), for the one maximising
     IoU( shift(amodal, s) minus occluders,  instance mask ),
 
 the occluders being the amodal masks of the vehicles already placed in front of it. Every
-shift is scored at once by two FFT cross-correlations over a crop (intersection and visible
-area), so the cost per instance is a couple of FFTs of its bounding box. The best shift is
+shift is scored at once by cross-correlating the amodal mask's bounding box with the window it
+can reach (intersection, visible area, and the vehicle's own LiDAR pixels; OpenCV's
+``matchTemplate``), so the cost per instance is a few correlations of its bounding box. The best shift is
 applied only when it improves that IoU by at least ``min_gain``; vehicles are handled front
 to back, and the occlusion order is resolved again afterwards. A pure image shift keeps the
 depth (the occlusion order stays the estimator's), which matches a lateral or vertical
@@ -26,8 +27,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.signal import fftconvolve
 
 from seqshape.errors import ConfigError
 
@@ -69,32 +70,67 @@ def _crop(mask: np.ndarray, y0: int, x0: int, h: int, w: int) -> np.ndarray:
     return out
 
 
-def _correlate(a: np.ndarray, b: np.ndarray, ry: int, rx: int) -> np.ndarray:
-    """``c[dy + ry, dx + rx] = sum_p a[p] * b[p - (dy, dx)]`` for |dy| <= ry, |dx| <= rx
-    (``a`` and ``b`` the same shape)."""
-    full = fftconvolve(a.astype(np.float64), b[::-1, ::-1].astype(np.float64), mode="full")
-    cy, cx = b.shape[0] - 1, b.shape[1] - 1
-    return np.rint(full[cy - ry:cy + ry + 1, cx - rx:cx + rx + 1])
+def _pixels(uv, shape: tuple[int, int]) -> np.ndarray:
+    """Integer ``(M, 2)`` (u, v) pixels of the image points ``uv`` that fall inside it."""
+    H, W = shape
+    if uv is None:
+        return np.zeros((0, 2), dtype=np.int64)
+    px = np.floor(np.asarray(uv, dtype=np.float64).reshape(-1, 2)).astype(np.int64)
+    return px[(px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)]
+
+
+def shift_scores(amodal: np.ndarray, guide: np.ndarray, occluder: np.ndarray, ry: int,
+                 rx: int, uv=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """For every shift ``(dy, dx)``, ``|dy| <= ry``, ``|dx| <= rx``, as arrays ``(2 ry + 1,
+    2 rx + 1)`` indexed ``[dy + ry, dx + rx]``:
+
+    * the IoU of ``shift(amodal) & ~occluder`` (inside the image) with ``guide``;
+    * with ``uv`` ``(M, 2)`` image points, the share of those inside the image that lie in
+      ``shift(amodal)`` (else None).
+
+    All masks are ``(h, w)`` bool of one image. Each sum is a cross-correlation of the amodal
+    mask's bounding box with the window that box can reach (OpenCV's ``matchTemplate``).
+    """
+    ones = np.ones((2 * ry + 1, 2 * rx + 1))
+    px = _pixels(uv, amodal.shape)
+    ys, xs = np.nonzero(amodal)
+    if len(ys) == 0:
+        return np.zeros_like(ones), (None if uv is None else ones)
+    ay0, ay1, ax0, ax1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+    templ = amodal[ay0:ay1, ax0:ax1].astype(np.float32)
+    y0, x0, h, w = ay0 - ry, ax0 - rx, ay1 - ay0 + 2 * ry, ax1 - ax0 + 2 * rx
+
+    def corr(layer: np.ndarray) -> np.ndarray:
+        return np.rint(cv2.matchTemplate(layer.astype(np.float32), templ, cv2.TM_CCORR))
+
+    free = _crop(~occluder, y0, x0, h, w)  # False outside the image too
+    inter = corr(_crop(guide, y0, x0, h, w) & free)
+    visible = corr(free)
+    union = visible + float(np.count_nonzero(guide)) - inter
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ious = np.where(union > 0, inter / union, 0.0)
+    if uv is None:
+        return ious, None
+    if len(px) == 0:
+        return ious, ones
+    hits = np.zeros((h, w), dtype=np.float32)
+    u, v = px[:, 0] - x0, px[:, 1] - y0
+    near = (u >= 0) & (u < w) & (v >= 0) & (v < h)  # the others never meet a shifted mask
+    np.add.at(hits, (v[near], u[near]), 1.0)
+    return ious, corr(hits) / len(px)
 
 
 def shift_ious(amodal: np.ndarray, guide: np.ndarray, occluder: np.ndarray, ry: int,
                rx: int) -> np.ndarray:
-    """IoU of ``shift(amodal, (dy, dx)) & ~occluder`` (inside the image) with ``guide`` for
-    every shift, as ``(2 ry + 1, 2 rx + 1)`` indexed ``[dy + ry, dx + rx]``. All masks are
-    ``(h, w)`` bool of one image."""
-    ys, xs = np.nonzero(amodal | guide)
-    if len(ys) == 0:
-        return np.zeros((2 * ry + 1, 2 * rx + 1))
-    y0, x0 = int(ys.min()) - ry, int(xs.min()) - rx
-    h, w = int(ys.max()) + ry + 1 - y0, int(xs.max()) + rx + 1 - x0
-    a = _crop(amodal, y0, x0, h, w)
-    free = _crop(~occluder, y0, x0, h, w)  # False outside the image too
-    g = _crop(guide, y0, x0, h, w)
-    inter = _correlate(g & free, a, ry, rx)
-    visible = _correlate(free, a, ry, rx)
-    union = visible + float(g.sum()) - inter
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(union > 0, inter / union, 0.0)
+    """The IoU part of :func:`shift_scores`."""
+    return shift_scores(amodal, guide, occluder, ry, rx)[0]
+
+
+def points_inside(amodal: np.ndarray, uv: np.ndarray, ry: int, rx: int) -> np.ndarray:
+    """The share of the image points ``uv`` inside ``shift(amodal)`` for every shift
+    (:func:`shift_scores`; 1 when none of them is in the image)."""
+    empty = np.zeros_like(amodal)
+    return shift_scores(amodal, empty, empty, ry, rx, uv)[1]
 
 
 def shift_mask(mask: np.ndarray, dy: int, dx: int) -> np.ndarray:
@@ -104,25 +140,6 @@ def shift_mask(mask: np.ndarray, dy: int, dx: int) -> np.ndarray:
     src = mask[max(0, -dy):H - max(0, dy), max(0, -dx):W - max(0, dx)]
     out[max(0, dy):max(0, dy) + src.shape[0], max(0, dx):max(0, dx) + src.shape[1]] = src
     return out
-
-
-def points_inside(amodal: np.ndarray, uv: np.ndarray, ry: int, rx: int) -> np.ndarray:
-    """Fraction of the pixels ``uv (M, 2)`` (u, v; those in the image) that lie inside
-    ``shift(amodal, (dy, dx))``, for every shift, as ``(2 ry + 1, 2 rx + 1)``."""
-    H, W = amodal.shape
-    px = np.floor(np.asarray(uv, dtype=np.float64).reshape(-1, 2)).astype(np.int64)
-    px = px[(px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)]
-    if len(px) == 0:
-        return np.ones((2 * ry + 1, 2 * rx + 1))
-    hits = np.zeros((H, W), dtype=np.float64)
-    np.add.at(hits, (px[:, 1], px[:, 0]), 1.0)
-    ys, xs = np.nonzero(amodal | (hits > 0))
-    y0, x0 = int(ys.min()) - ry, int(xs.min()) - rx
-    h, w = int(ys.max()) + ry + 1 - y0, int(xs.max()) + rx + 1 - x0
-    a = _crop(amodal, y0, x0, h, w)
-    pts = np.zeros((h, w))
-    pts[px[:, 1] - y0, px[:, 0] - x0] = hits[px[:, 1], px[:, 0]]
-    return _correlate(pts, a, ry, rx) / len(px)
 
 
 def best_shift(amodal: np.ndarray, guide: np.ndarray, occluder: np.ndarray,
@@ -137,10 +154,11 @@ def best_shift(amodal: np.ndarray, guide: np.ndarray, occluder: np.ndarray,
         return 0, 0, 0.0, 0.0
     ry = min(cfg.max_px, int(np.ceil(cfg.max_shift * (np.ptp(ys) + 1))))
     rx = min(cfg.max_px, int(np.ceil(cfg.max_shift * (np.ptp(xs) + 1))))
-    ious = shift_ious(amodal, guide, occluder, ry, rx)
+    has_points = points is not None and len(points) > 0
+    ious, inside = shift_scores(amodal, guide, occluder, ry, rx,
+                                points if has_points else None)
     base = float(ious[ry, rx])
-    if points is not None and len(points):
-        inside = points_inside(amodal, points, ry, rx)
+    if inside is not None:
         ok = inside >= min(cfg.min_inside, float(inside[ry, rx]))
         ious = np.where(ok, ious, -1.0)
     dy, dx = np.mgrid[-ry:ry + 1, -rx:rx + 1]
