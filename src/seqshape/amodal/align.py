@@ -81,8 +81,16 @@ def _pixels(uv, shape: tuple[int, int]) -> np.ndarray:
     return px[(px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)]
 
 
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """``(y0, y1, x0, x1)`` (end exclusive) of a bool mask's pixels, None when empty."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return None
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
 def shift_scores(amodal: np.ndarray, guide: np.ndarray, occluder: np.ndarray, ry: int,
-                 rx: int, uv=None) -> tuple[np.ndarray, np.ndarray | None]:
+                 rx: int, uv=None, box=None) -> tuple[np.ndarray, np.ndarray | None]:
     """For every shift ``(dy, dx)``, ``|dy| <= ry``, ``|dx| <= rx``, as arrays ``(2 ry + 1,
     2 rx + 1)`` indexed ``[dy + ry, dx + rx]``:
 
@@ -90,15 +98,16 @@ def shift_scores(amodal: np.ndarray, guide: np.ndarray, occluder: np.ndarray, ry
     * with ``uv`` ``(M, 2)`` image points, the share of those inside the image that lie in
       ``shift(amodal)`` (else None).
 
-    All masks are ``(h, w)`` bool of one image. Each sum is a cross-correlation of the amodal
-    mask's bounding box with the window that box can reach (OpenCV's ``matchTemplate``).
+    All masks are ``(h, w)`` bool of one image; ``box``: the amodal mask's :func:`_bbox` when
+    already known. Each sum is a cross-correlation of the amodal mask's bounding box with the
+    window that box can reach (OpenCV's ``matchTemplate``).
     """
     ones = np.ones((2 * ry + 1, 2 * rx + 1))
     px = _pixels(uv, amodal.shape)
-    ys, xs = np.nonzero(amodal)
-    if len(ys) == 0:
+    box = _bbox(amodal) if box is None else box
+    if box is None:
         return np.zeros_like(ones), (None if uv is None else ones)
-    ay0, ay1, ax0, ax1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+    ay0, ay1, ax0, ax1 = box
     templ = amodal[ay0:ay1, ax0:ax1].astype(np.float32)
     y0, x0, h, w = ay0 - ry, ax0 - rx, ay1 - ay0 + 2 * ry, ax1 - ax0 + 2 * rx
 
@@ -151,14 +160,14 @@ def best_shift(amodal: np.ndarray, guide: np.ndarray, occluder: np.ndarray,
     gains ``min_gain``. ``points`` ``(M, 2)``: the pixels of the vehicle's own LiDAR returns;
     shifts that leave more than ``1 - min_inside`` of them outside the mask are not taken
     (the returns are measured surface, the 2D mask only a segmenter's guess)."""
-    ys, xs = np.nonzero(amodal)
-    if len(ys) == 0 or not guide.any():
+    box = _bbox(amodal)
+    if box is None or not guide.any():
         return 0, 0, 0.0, 0.0
-    ry = min(cfg.max_px, int(np.ceil(cfg.max_shift * (np.ptp(ys) + 1))))
-    rx = min(cfg.max_px, int(np.ceil(cfg.max_shift * (np.ptp(xs) + 1))))
+    ry = min(cfg.max_px, int(np.ceil(cfg.max_shift * (box[1] - box[0]))))
+    rx = min(cfg.max_px, int(np.ceil(cfg.max_shift * (box[3] - box[2]))))
     has_points = points is not None and len(points) > 0
     ious, inside = shift_scores(amodal, guide, occluder, ry, rx,
-                                points if has_points else None)
+                                points if has_points else None, box)
     base = float(ious[ry, rx])
     if inside is not None:
         ok = inside >= min(cfg.min_inside, float(inside[ry, rx]))

@@ -191,8 +191,7 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
             anns.setdefault(a["image_id"], []).append(a)
     ego = seq.ego_poses
     calib = seq.calib
-    per_frame, det_points, det_cats = [], [], []
-    rles: dict[int, list] = {}  # frame -> the RLE of each detection (by Detection.index)
+    per_frame, det_points, det_cats, det_rles = [], [], [], []
     for frame in progress(seq.frames, desc=f"segment {seq.sequence}", unit="frame"):
         image_id = by_name.get(f"{seq.sequence}/{frame:06d}.png")
         fa = anns.get(image_id, []) if image_id is not None else []
@@ -202,7 +201,7 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
             scan = np.asarray(seq.velodyne(frame))
             plane = ground_plane(scan[:, :3])
             parts = segment_frame(scan, calib, masks, plane=plane)
-        dets, pts, cats = [], [], []
+        dets, pts, cats, rles = [], [], [], []
         for m, (a, p) in enumerate(zip(fa, parts, strict=True)):
             if len(p) < min_points:
                 if unsupported is not None:
@@ -211,22 +210,24 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
             pose = None if ego is None or frame >= len(ego) else ego[frame]
             c = to_common_frame(np.median(p, axis=0), pose)
             dets.append(Detection(frame, c, masks[m], len(dets)))
-            rles.setdefault(frame, []).append(a["segmentation"])
             pts.append(p)
             cats.append(int(a["category_id"]))
+            rles.append(a["segmentation"])
         per_frame.append(dets)
         det_points.append(pts)
         det_cats.append(cats)
+        det_rles.append(rles)
     ids = associate(per_frame, gate=gate)
     tracks: dict[int, TrackInput] = {}
     cat_votes: dict[int, list[int]] = {}
-    for dets, pts, cats, tids in zip(per_frame, det_points, det_cats, ids, strict=True):
-        for d, p, c, t in zip(dets, pts, cats, tids, strict=True):
+    for dets, pts, cats, rles, tids in zip(per_frame, det_points, det_cats, det_rles, ids,
+                                           strict=True):
+        for d, p, c, r, t in zip(dets, pts, cats, rles, tids, strict=True):
             tr = tracks.setdefault(t, TrackInput(f"{seq.sequence}_seg{t:04d}", [], [], None,
                                                  4, t, masks=[]))
             tr.frames.append(d.frame)
             tr.points.append(p)
-            tr.masks.append(rles[d.frame][d.index])
+            tr.masks.append(r)
             cat_votes.setdefault(t, []).append(c)
     for t, tr in tracks.items():
         tr.category_id = int(np.bincount(cat_votes[t]).argmax())
