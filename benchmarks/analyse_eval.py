@@ -1,6 +1,7 @@
 """Break an evaluation's per-frame errors down by the number of detections so far, split
 the rotation error into 180-degree flips and the rest, and split the tracks into parked and
-moving vehicles (docs/results.md, Table I notes).
+moving vehicles, also by range from the sensor and at their first frame (docs/results.md,
+Table I notes).
 
 Parked: the vehicle's distance to the sensor does not change over its track (spread below
 1 cm). With the generator's fixed sensor and no range noise such a track repeats one view, so
@@ -83,6 +84,29 @@ def motion_table(data: dict[str, dict[str, np.ndarray]]) -> None:
     print_table(head, rows)
 
 
+def range_table(data: dict[str, dict[str, np.ndarray]], near_m: float = 15.0) -> None:
+    """Parked and moving tracks split at ``near_m`` from the sensor (frame-pooled CD and
+    translation), and the CD of each track's first frame (mean over tracks)."""
+    parked = parked_tracks(next(iter(data.values())))
+    rows = []
+    for group in ("parked", "moving"):
+        for m, rec in data.items():
+            in_group = np.isin(rec["track_id"], sorted(parked)) == (group == "parked")
+            row = [group, m]
+            for near in (True, False):
+                sel = in_group & ((rec["distance_m"] < near_m) == near)
+                row += [str(int(sel.sum())), _fmt(rec["cd_m"][sel], 100.0, 2),
+                        _fmt(rec["trans_m"][sel], 100.0, 2)]
+            first = rec["n_det"] == 1
+            firsts = [rec["cd_m"][first & (rec["track_id"] == t)][:1]
+                      for t in np.unique(rec["track_id"][in_group])]
+            row.append(_fmt(np.concatenate(firsts) if firsts else np.zeros(0), 100.0, 2))
+            rows.append(row)
+    print_table(["tracks", "method", f"frames < {near_m:g} m", "CD (cm)", "translation (cm)",
+                 f"frames >= {near_m:g} m", "CD (cm)", "translation (cm)",
+                 "first-frame CD, mean over tracks (cm)"], rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("per_frame", help="EVAL/per_frame.csv from seqshape evaluate")
@@ -113,6 +137,8 @@ def main() -> None:
                 flips)
     print()
     motion_table(data)
+    print()
+    range_table(data)
 
 
 if __name__ == "__main__":
