@@ -1,7 +1,7 @@
 """Break an evaluation's per-frame errors down by the number of detections so far, split
 the rotation error into 180-degree flips and the rest, and split the tracks into parked and
-moving vehicles, also by range from the sensor and at their first frame (docs/results.md,
-Table I notes).
+moving vehicles, also by range from the sensor, at their first frame and by track length
+against the training window (docs/results.md, Table I notes).
 
 Parked: the vehicle's distance to the sensor does not change over its track (spread below
 1 cm). With the generator's fixed sensor and no range noise such a track repeats one view, so
@@ -22,6 +22,9 @@ import numpy as np
 from _bench import print_table
 
 BINS = (1, 2, 3, 6, 11, 21, 41, 81)  # detections so far: [1], [2], [3-5], ..., [81+]
+# finer at the lengths training windows have (32, 64, 128 frames): a recurrent model run past
+# the length it was trained on can drift
+LENGTH_BINS = (1, 2, 9, 17, 33, 49, 65, 97, 129)
 ROWS = (("CD", "cd_m"), ("shape CD at the true pose", "cd_true_pose_m"),
         ("translation", "trans_m"))
 
@@ -107,14 +110,39 @@ def range_table(data: dict[str, dict[str, np.ndarray]], near_m: float = 15.0) ->
                  "first-frame CD, mean over tracks (cm)"], rows)
 
 
+def _labels(bins) -> list[str]:
+    edges = list(bins) + [np.inf]
+    return [f"{lo}" if hi - lo == 1 else (f"{lo}+" if hi == np.inf else f"{lo}-{hi - 1}")
+            for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def length_table(data: dict[str, dict[str, np.ndarray]]) -> None:
+    """Frame-pooled CD by detections so far (:data:`LENGTH_BINS`), parked and moving tracks
+    apart: how the estimate evolves as a track gets longer."""
+    parked = parked_tracks(next(iter(data.values())))
+    edges = list(LENGTH_BINS) + [np.inf]
+    rows = []
+    for group in ("parked", "moving"):
+        first = True
+        for m, rec in data.items():
+            in_group = np.isin(rec["track_id"], sorted(parked)) == (group == "parked")
+            n = rec["n_det"]
+            sels = [in_group & (n >= lo) & (n < hi)
+                    for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+            if first:
+                rows.append([group, "frames", *[str(int(s.sum())) for s in sels]])
+                first = False
+            rows.append([group, f"CD {m} (cm)", *[_fmt(rec["cd_m"][s], 100.0, 2) for s in sels]])
+    print_table(["tracks", "detections so far", *_labels(LENGTH_BINS)], rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("per_frame", help="EVAL/per_frame.csv from seqshape evaluate")
     args = ap.parse_args()
     data = read(args.per_frame)
     edges = list(BINS) + [np.inf]
-    labels = [f"{lo}" if hi - lo == 1 else (f"{lo}+" if hi == np.inf else f"{lo}-{hi - 1}")
-              for lo, hi in zip(edges[:-1], edges[1:], strict=True)]
+    labels = _labels(BINS)
     first = next(iter(data.values()))["n_det"]
     rows = [["frames", *[str(int(((first >= lo) & (first < hi)).sum()))
                          for lo, hi in zip(edges[:-1], edges[1:], strict=True)]]]
@@ -139,6 +167,8 @@ def main() -> None:
     motion_table(data)
     print()
     range_table(data)
+    print()
+    length_table(data)
 
 
 if __name__ == "__main__":
