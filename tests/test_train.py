@@ -103,6 +103,29 @@ def test_resume_is_bit_identical(dataset, tmp_path):
     assert rows_ref == rows_got
 
 
+def test_stage3_sigmas_start_at_the_val_optimum(dataset, tmp_path):
+    # s^2 = L on the fixed val windows; without val windows, on the step's own batch
+    cfg = get_train_config("smoke")
+    tr = Trainer(dataset.path, tmp_path / "run", "sequential", cfg)
+    batch = tr._val_batches[0]
+    v = tr.validate(1)
+    tr._init_sigmas(batch)
+    s_cd, s_p = tr.joint.sigmas
+    assert s_cd**2 == pytest.approx(v["val_cd_m"], rel=1e-5)
+    assert s_p**2 == pytest.approx(v["val_pose_m2"], rel=1e-5)
+    tr.runlog.close()
+    no_val = Trainer(dataset.path, tmp_path / "run2", "sequential",
+                     dataclasses.replace(cfg, val_windows=0))
+    with torch.no_grad():
+        res = no_val._losses(batch, None)
+    no_val._init_sigmas(batch)
+    b_cd, b_p = no_val.joint.sigmas
+    assert b_cd**2 == pytest.approx(float(res["cd"]), rel=1e-5)
+    assert b_p**2 == pytest.approx(float(res["pose"]), rel=1e-5)
+    assert abs(b_p - s_p) > 1e-3 * s_p  # one batch is not the val set
+    no_val.runlog.close()
+
+
 def test_existing_run_needs_resume(dataset, tmp_path):
     cfg = dataclasses.replace(get_train_config("smoke"),
                               stages=get_train_config("smoke").with_stage_steps((5, 0, 0)).stages)

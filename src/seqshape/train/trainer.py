@@ -250,13 +250,25 @@ class Trainer:
         return bool(sc.time_budget_min) and self.state["elapsed"] >= 60.0 * sc.time_budget_min
 
     def _init_sigmas(self, batch: dict[str, torch.Tensor]) -> None:
+        """Start stage 3's sigmas at their optimum ``s^2 = L`` for the current weights.
+
+        The losses are measured on the fixed val windows when there are any (frame-weighted as
+        in :meth:`validate`, the main process's figures broadcast to all), else on this step's
+        batch (averaged over the processes). One batch can be a poor sample: with one window per step a lucky first
+        batch set s_p at a quarter of its typical value and the pose term swamped the rest.
+        """
         with torch.no_grad():
             res = self._losses(batch, None)
-            vals = torch.stack([res["cd"], res["pose"]])
-            vals = _all_reduce_mean(vals, self.world)
+            vals = _all_reduce_mean(torch.stack([res["cd"], res["pose"]]), self.world)
+            v = self.validate(1) if self.is_main else {}
+            val = torch.tensor([float(bool(v)), v.get("val_cd_m", 0.0), v.get("val_pose_m2", 0.0)])
+            val = _broadcast(val, self.world)
+        source = "the first batch"
+        if val[0] > 0:
+            vals, source = val[1:], "the fixed val windows"
         self.joint.init_from(float(vals[0]), float(vals[1]))
         self.state["sigma_init"] = True
-        log.info("stage 3: sigma_cd=%.4g sigma_p=%.4g from the first batch", *self.joint.sigmas)
+        log.info("stage 3: sigma_cd=%.4g sigma_p=%.4g from %s", *self.joint.sigmas, source)
 
     def _train_step(self, opt, wds: WindowDataset, stage: int) -> dict[str, float]:
         c = self.cfg
@@ -439,6 +451,17 @@ def _all_reduce_mean(t: torch.Tensor, world: int) -> torch.Tensor:
     t = t.clone()
     dist.all_reduce(t)
     return t / world
+
+
+def _broadcast(t: torch.Tensor, world: int) -> torch.Tensor:
+    """Rank 0's ``t`` on every process."""
+    if world <= 1:
+        return t
+    import torch.distributed as dist
+
+    t = t.clone()
+    dist.broadcast(t, 0)
+    return t
 
 
 def _all_reduce_max(x: float, world: int) -> float:
