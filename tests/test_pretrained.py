@@ -39,12 +39,14 @@ def test_shipped_weights_load_and_run(shipped):
 
 
 def test_sequential_beats_baseline_on_fixed_val_set(summary):
-    # The shipped small models separate clearly on heading (paper val split: 13.96 vs 30.38 deg);
-    # CD and translation are within a few percent of each other (docs/results.md), so only
-    # the rotation error is asserted, with a margin.
+    # The shipped small models separate clearly on heading (paper val split: 13.71 vs 30.86
+    # deg; here 7.9 vs 13.6) and narrowly on CD (24.80 vs 24.95 cm; here 22.58 vs 22.67) and
+    # translation (16.33 vs 17.16 cm; here 12.20 vs 12.94). The set and the weights are fixed,
+    # so the run is deterministic: the narrow margins are far above numerical noise, and any
+    # new weights must keep the sequential model ahead on this set too.
     seq, base = summary["sequential"], summary["baseline"]
     assert seq["rot_deg"] < 0.8 * base["rot_deg"]
-    assert seq["cd_cm"] < 1.2 * base["cd_cm"] and seq["trans_cm"] < 1.2 * base["trans_cm"]
+    assert seq["cd_cm"] < base["cd_cm"] and seq["trans_cm"] < base["trans_cm"]
 
 
 def test_foreign_and_corrupt_files_are_clear_errors(tmp_path):
