@@ -21,6 +21,8 @@ import csv
 import numpy as np
 from _bench import print_table
 
+from seqshape.evaluation.report import FLIP_DEG
+
 BINS = (1, 2, 3, 6, 11, 21, 41, 81)  # detections so far: [1], [2], [3-5], ..., [81+]
 # finer at the lengths training windows have (32, 64, 128 frames): a recurrent model run past
 # the length it was trained on can drift
@@ -157,10 +159,10 @@ def main() -> None:
     flips = []
     for m, rec in data.items():
         r = np.degrees(rec["rot_rad"][np.isfinite(rec["rot_rad"])])
-        f = r > 150
+        f = r > FLIP_DEG
         flips.append([m, f"{r.mean():.1f}", f"{100 * f.mean():.1f}", f"{r[f].sum() / len(r):.1f}",
                       f"{r[~f].mean():.1f}", f"{np.median(r):.1f}"])
-    print_table(["method", "rotation mean (deg)", "flips > 150 deg (% frames)",
+    print_table(["method", "rotation mean (deg)", f"flips > {FLIP_DEG:.0f} deg (% frames)",
                  "flips' share of the mean (deg)", "mean without flips (deg)", "median (deg)"],
                 flips)
     print()

@@ -289,3 +289,20 @@ def test_demo_end_to_end_with_untrained_models(tmp_path, monkeypatch):
     assert "<table>" in index and "<code>step</code>" in index
     for rel in ("eval/errors_vs_detections.png", "eval/track_view.html", "eval/metrics.json"):
         assert rel in index and (out / rel).is_file()
+
+
+def test_flip_diagnostic_counts_frames_tracks_and_the_rest():
+    from seqshape.evaluation.report import method_summary, metrics_markdown
+
+    # track a: 0.1 rad and a full flip (pi); track b: 3.0 rad (171.9 deg, a flip), 2.5 rad
+    # (143.2 deg, not one) and an unknown pose; track c: 0.3 rad
+    rot = np.array([0.1, np.pi, 3.0, 2.5, np.nan, 0.3])
+    n = len(rot)
+    rec = {"frame": np.arange(n), "track_id": np.array(list("aabbbc")), "rot_rad": rot,
+           **{c: np.full(n, 0.2) for c in ("cd_m", "emd_m", "trans_m", "cd_true_pose_m")}}
+    table, details = method_summary(rec)
+    assert details["rot_flip_frames"] == 2 and details["rot_flip_tracks"] == 2
+    assert details["rot_deg_without_flips"] == pytest.approx(np.degrees((0.1 + 2.5 + 0.3) / 3))
+    assert table["rot_deg"] == pytest.approx(np.degrees(np.nanmean(rot)))
+    md = metrics_markdown({"sequential": table, "details": {"sequential": details}})
+    assert "sequential 2 of 5 frames in 2 tracks, rotation without them 55.39 deg" in md
