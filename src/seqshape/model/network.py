@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from seqshape.model.config import ModelConfig
@@ -38,16 +39,6 @@ def mlp(sizes: Sequence[int], point_wise: bool = False) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def masked_max(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Max over the point axis of ``x`` (F, N, C) counting only ``mask`` (F, N) points.
-
-    A frame without valid points gets a zero feature.
-    """
-    neg = torch.finfo(x.dtype).min
-    out = x.masked_fill(~mask.unsqueeze(-1), neg).amax(dim=1)
-    return torch.where(mask.any(dim=1, keepdim=True), out, torch.zeros_like(out))
-
-
 class PointEncoder(nn.Module):
     """PCN encoder: shared MLP -> max-pool g -> [per-point, g] -> shared MLP -> max-pool.
 
@@ -61,10 +52,25 @@ class PointEncoder(nn.Module):
         self.mlp2 = mlp([2 * cfg.encoder1[-1], *cfg.encoder2], point_wise=True)
 
     def forward(self, points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        x = self.mlp1(points)
-        g = masked_max(x, mask)
-        x = torch.cat([x, g.unsqueeze(1).expand(-1, x.shape[1], -1)], dim=-1)
-        return masked_max(self.mlp2(x), mask)
+        # Padded rows become copies of the frame's real rows (cyclically): the per-point MLPs
+        # give a copy the same features as its original and a max over a set with repeats is
+        # the max over the set, so both max-pools are plain maxima, as exact as masking them
+        # and without the masked copies of (F, N, C) features.
+        f, n, c_in = points.shape
+        count = mask.sum(dim=1, keepdim=True)
+        real_first = torch.argsort((~mask).to(torch.uint8), dim=1, stable=True)
+        rows = real_first.gather(1, torch.arange(n, device=points.device) % count.clamp(min=1))
+        x = self.mlp1(points.gather(1, rows.unsqueeze(-1).expand(-1, -1, c_in)))
+        g = x.amax(dim=1)
+        # mlp2's first layer on [x, g] is x W_x^T + (g W_g^T + b): the global half is computed
+        # once per frame instead of once per point
+        first, c = self.mlp2[0], x.shape[-1]
+        y = F.linear(x, first.weight[:, :c])
+        y += F.linear(g, first.weight[:, c:], first.bias).unsqueeze(1)
+        if len(self.mlp2) > 1:  # mlp2[1] is its first ReLU
+            y = self.mlp2[2:](torch.relu_(y))
+        out = y.amax(dim=1)
+        return torch.where(count > 0, out, torch.zeros_like(out))
 
 
 class ShapePoseNet(nn.Module):
