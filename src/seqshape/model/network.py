@@ -56,7 +56,7 @@ class PointEncoder(nn.Module):
         # give a copy the same features as its original and a max over a set with repeats is
         # the max over the set, so both max-pools are plain maxima, as exact as masking them
         # and without the masked copies of (F, N, C) features.
-        f, n, c_in = points.shape
+        n, c_in = points.shape[1:]
         count = mask.sum(dim=1, keepdim=True)
         real_first = torch.argsort((~mask).to(torch.uint8), dim=1, stable=True)
         rows = real_first.gather(1, torch.arange(n, device=points.device) % count.clamp(min=1))
