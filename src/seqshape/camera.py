@@ -1,4 +1,7 @@
-"""Pinhole cameras with KITTI calibration: reading, writing and projecting LiDAR points.
+"""Pinhole cameras (generic, and KITTI calibration): reading, writing and projecting LiDAR points.
+
+Every dataset builds a :class:`PinholeCamera` of its LiDAR sensor frame; KITTI calibration
+files are one way to make one (:meth:`KittiCalib.camera`).
 
 Frames (KITTI conventions, fixed once here):
 
@@ -108,6 +111,99 @@ class KittiCalib:
     @property
     def height(self) -> int:
         return self.image_size[1]
+
+    def camera(self, cam: int = 2) -> PinholeCamera:
+        """Camera ``cam`` as a generic :class:`PinholeCamera` of the velodyne (sensor) frame."""
+        return PinholeCamera(name=f"image_{cam:02d}", P=self.P(cam), T_cam_sensor=self.velo_to_rect,
+                             image_size=self.image_size)
+
+
+@dataclass
+class PinholeCamera:
+    """A pinhole camera looking at a LiDAR's sensor frame (any dataset).
+
+    ``T_cam_sensor`` (4, 4) maps sensor-frame points (x forward, y left, z up) into the
+    camera's reference frame (x right, y down, z along the optical axis); ``P`` (3, 4) projects
+    reference-frame points to pixels: ``[u*d, v*d, d] = P @ [T_cam_sensor @ p; 1]``. For a plain
+    camera ``P = [K | 0]`` (:meth:`from_intrinsics`); KITTI's rectified cameras keep their
+    ``P_i`` with its baseline term (:meth:`KittiCalib.camera`). ``image_size`` is
+    (width, height); pixel centres sit at integer coordinates. ``depth`` is the third
+    homogeneous coordinate, metres along the optical axis.
+
+    >>> cam = PinholeCamera.from_intrinsics(np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]]),
+    ...                                     np.eye(4), (100, 80))
+    >>> uv, depth = cam.project(np.array([[1.0, 0.5, 10.0]]))
+    >>> uv.tolist(), depth.tolist()
+    ([[60.0, 45.0]], [10.0])
+    """
+
+    P: np.ndarray
+    T_cam_sensor: np.ndarray
+    image_size: tuple[int, int]
+    name: str = "camera"
+
+    def __post_init__(self):
+        self.P = np.asarray(self.P, dtype=np.float64).reshape(3, 4)
+        self.T_cam_sensor = np.asarray(self.T_cam_sensor, dtype=np.float64).reshape(4, 4)
+        self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+        if min(self.image_size) <= 0:
+            raise ValueError(f"camera {self.name}: image size must be positive, got "
+                             f"{self.image_size}")
+
+    @classmethod
+    def from_intrinsics(cls, K, T_cam_sensor, image_size, name: str = "camera") -> PinholeCamera:
+        """A camera from its (3, 3) intrinsic matrix and sensor -> camera transform."""
+        return cls(P=np.c_[np.asarray(K, dtype=np.float64).reshape(3, 3), np.zeros(3)],
+                   T_cam_sensor=T_cam_sensor, image_size=image_size, name=name)
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) intrinsic matrix (left block of ``P``)."""
+        return self.P[:, :3].copy()
+
+    @property
+    def width(self) -> int:
+        return self.image_size[0]
+
+    @property
+    def height(self) -> int:
+        return self.image_size[1]
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(3, 4) sensor-frame projection ``P @ T_cam_sensor``."""
+        return self.P @ self.T_cam_sensor
+
+    @property
+    def position(self) -> np.ndarray:
+        """(3,) the optical centre in the sensor frame."""
+        m = self.matrix
+        return -np.linalg.solve(m[:, :3], m[:, 3])
+
+    def project(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor-frame points (N, 3) -> ``(uv (N, 2), depth (N,))`` float64."""
+        return _project(points, self.matrix)
+
+    def unproject(self, uv, depth) -> np.ndarray:
+        """Inverse of :meth:`project`: pixels (N, 2) and depths (N,) -> sensor frame (N, 3)."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        depth = np.asarray(depth, dtype=np.float64).reshape(-1)
+        m = self.matrix
+        hom = np.c_[uv * depth[:, None], depth] - m[:, 3]
+        return np.linalg.solve(m[:, :3], hom.T).T
+
+    def in_image(self, uv, depth, min_depth: float = 0.0) -> np.ndarray:
+        """Boolean (N,): in front (depth > min_depth) and inside the image bounds."""
+        return _in_bounds(uv, depth, self.image_size, min_depth)
+
+
+def as_camera(camera, cam: int = 2) -> PinholeCamera:
+    """A :class:`PinholeCamera` from a camera or a :class:`KittiCalib` (its camera ``cam``)."""
+    if isinstance(camera, PinholeCamera):
+        return camera
+    if isinstance(camera, KittiCalib):
+        return camera.camera(cam)
+    raise TypeError(f"expected a PinholeCamera or KittiCalib, got {type(camera).__name__}")
 
 
 def _h(m: np.ndarray) -> np.ndarray:
@@ -232,16 +328,21 @@ def _project(points, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return uv, depth
 
 
-def project_points(points_velo, calib: KittiCalib, cam: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Project velodyne points (N, 3) into camera ``cam``: ``P_cam @ R_rect @ Tr_velo_cam``.
+def project_points(points_velo, calib, cam: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Project sensor-frame points (N, 3) into a camera: a :class:`PinholeCamera`, or camera
+    ``cam`` of a :class:`KittiCalib` (``P_cam @ R_rect @ Tr_velo_cam``).
 
     Returns ``(uv (N, 2), depth (N,))`` float64 as :func:`project_rect`.
     """
+    if isinstance(calib, PinholeCamera):
+        return calib.project(points_velo)
     return _project(points_velo, calib.P(cam) @ calib.velo_to_rect)  # one (3, 4) matrix
 
 
-def unproject_points(uv, depth, calib: KittiCalib, cam: int = 2) -> np.ndarray:
-    """Inverse of :func:`project_points`: pixels (N, 2) and depths (N,) -> velodyne (N, 3)."""
+def unproject_points(uv, depth, calib, cam: int = 2) -> np.ndarray:
+    """Inverse of :func:`project_points`: pixels (N, 2) and depths (N,) -> sensor frame (N, 3)."""
+    if isinstance(calib, PinholeCamera):
+        return calib.unproject(uv, depth)
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     depth = np.asarray(depth, dtype=np.float64).reshape(-1)
     p = calib.P(cam)
@@ -250,14 +351,19 @@ def unproject_points(uv, depth, calib: KittiCalib, cam: int = 2) -> np.ndarray:
     return cam_to_velo(rect, calib)
 
 
-def in_image(uv, depth, calib: KittiCalib, min_depth: float = 0.0) -> np.ndarray:
-    """Boolean (N,): in front of the camera (depth > min_depth) and inside the image bounds.
+def in_image(uv, depth, calib, min_depth: float = 0.0) -> np.ndarray:
+    """Boolean (N,): in front of the camera (depth > min_depth) and inside the image bounds
+    of ``calib`` (a :class:`PinholeCamera` or :class:`KittiCalib`).
 
     The image covers ``-0.5 <= u < width - 0.5`` and ``-0.5 <= v < height - 0.5`` (pixel
     centres at integers).
     """
+    return _in_bounds(uv, depth, calib.image_size, min_depth)
+
+
+def _in_bounds(uv, depth, image_size, min_depth: float) -> np.ndarray:
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-    w, h = calib.image_size
+    w, h = image_size
     with np.errstate(invalid="ignore"):
         return ((np.asarray(depth) > min_depth) & (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5)
                 & (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5))

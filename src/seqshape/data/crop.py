@@ -1,0 +1,121 @@
+"""Cutting one vehicle out of a LiDAR sweep: the crop every real-data path uses.
+
+:func:`crop_vehicle` is the single preprocessing step between a sweep and the estimator. Track
+extraction (``seqshape tracks``), the labeller (``seqshape label``) and the training data path
+call this one function, so what the network is trained on and what it sees at inference are
+cut the same way:
+
+1. the sweep points inside the box enlarged by ``margin`` metres on each side (length and
+   width; the height too, by ``margin_z``);
+2. minus the ground: a plane fitted by RANSAC (:func:`seqshape.data.ground.ground_plane`) to
+   the low points of the box's surroundings (the box enlarged by ``context`` metres, heights
+   from 1 m below to ``band`` m above the box bottom), so a slope, a camber or a box drawn a
+   little too low or too high does not matter; points less than ``ground_threshold`` m above
+   that plane are dropped. With too few surrounding points (fewer than ``min_ground_points``)
+   the sweep's own ground plane is used when the caller has one, else a cut at the box bottom
+   plus ``box_ground``. ``ground="box"`` always cuts at the box bottom (the former rule);
+   ``ground="none"`` keeps everything.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from seqshape.data.ground import _fit_plane, _ransac_plane
+from seqshape.errors import ConfigError
+from seqshape.geometry import sensor_to_canonical
+
+GROUND_MODES = ("plane", "box", "none")
+
+
+@dataclass(frozen=True)
+class CropConfig:
+    """How a vehicle is cut out of a sweep (module doc)."""
+
+    margin: float = 0.2
+    margin_z: float = 0.1
+    ground: str = "plane"
+    ground_threshold: float = 0.2
+    box_ground: float = 0.15
+    context: float = 2.0
+    band: float = 0.5
+    min_ground_points: int = 30
+    iterations: int = 60
+    max_tilt_deg: float = 10.0
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.ground not in GROUND_MODES:
+            raise ConfigError(f"ground must be one of {GROUND_MODES}, got {self.ground!r}")
+        if self.margin < 0 or self.margin_z < 0 or self.context < 0:
+            raise ConfigError("crop margins must be >= 0")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _near(points: np.ndarray, pose, size, reach_extra: float) -> np.ndarray:
+    """Indices of the points within the box's bounding circle grown by ``reach_extra`` (x, y)."""
+    reach = float(np.hypot(size[0] / 2, size[1] / 2)) + reach_extra
+    return np.flatnonzero((np.abs(points[:, 0] - pose[0]) <= reach)
+                          & (np.abs(points[:, 1] - pose[1]) <= reach))
+
+
+def local_ground(points, pose, size, cfg: CropConfig = CropConfig()):
+    """The ground plane ``(n, d)`` around a box (module doc, step 2), or None (too few points)."""
+    pts = np.asarray(points)[:, :3]
+    pose = np.asarray(pose, dtype=np.float64)
+    size = np.asarray(size, dtype=np.float64)
+    idx = _near(pts, pose, size, cfg.context)
+    cand = pts[idx].astype(np.float64)
+    if len(cand) < cfg.min_ground_points:
+        return None
+    local = sensor_to_canonical(cand, pose)
+    bottom = -size[2] / 2
+    keep = ((np.abs(local[:, 0]) <= size[0] / 2 + cfg.context)
+            & (np.abs(local[:, 1]) <= size[1] / 2 + cfg.context)
+            & (local[:, 2] >= bottom - 1.0) & (local[:, 2] <= bottom + cfg.band))
+    cand = cand[keep]
+    if len(cand) < cfg.min_ground_points:
+        return None
+    rng = np.random.default_rng(cfg.seed)
+    best, count = _ransac_plane(cand, rng, cfg.iterations, 0.08, cfg.max_tilt_deg)
+    if best is None or count < cfg.min_ground_points:
+        return None
+    n, d = best
+    inl = cand[np.abs(cand @ n + d) < 0.08]
+    n2, d2 = _fit_plane(inl)
+    if n2[2] >= np.cos(np.radians(cfg.max_tilt_deg)):
+        n, d = n2, d2
+    return n, float(d)
+
+
+def crop_vehicle(points, pose, size, cfg: CropConfig = CropConfig(),
+                 sweep_plane=None) -> np.ndarray:
+    """The points of one vehicle: ``points (N, 3+)`` of a sweep, the vehicle's box ``pose``
+    (x, y, z, yaw) and ``size`` (l, w, h) in the sweep's sensor frame -> ``(M, 3)`` float32.
+
+    ``sweep_plane``: the sweep's ground plane ``(n, d)`` (or a function returning it, called
+    only when needed), used where the local fit fails.
+    """
+    pts = np.asarray(points)[:, :3]
+    pose = np.asarray(pose, dtype=np.float64)
+    size = np.asarray(size, dtype=np.float64)
+    idx = _near(pts, pose, size, cfg.margin)
+    cand = pts[idx]
+    half = size / 2 + [cfg.margin, cfg.margin, cfg.margin_z]
+    cand = cand[np.all(np.abs(sensor_to_canonical(cand.astype(np.float64), pose)) <= half, axis=1)]
+    if cfg.ground == "none" or len(cand) == 0:
+        return np.ascontiguousarray(cand, dtype=np.float32)
+    plane = local_ground(pts, pose, size, cfg) if cfg.ground == "plane" else None
+    if plane is None and cfg.ground == "plane":
+        plane = sweep_plane() if callable(sweep_plane) else sweep_plane
+    c64 = cand.astype(np.float64)
+    if plane is not None:
+        n, d = plane
+        above = c64 @ np.asarray(n, dtype=np.float64) + d >= cfg.ground_threshold
+    else:
+        above = sensor_to_canonical(c64, pose)[:, 2] >= -size[2] / 2 + cfg.box_ground
+    return np.ascontiguousarray(cand[above], dtype=np.float32)

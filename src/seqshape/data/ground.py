@@ -1,0 +1,80 @@
+"""Ground planes of LiDAR sweeps, fitted by RANSAC (used by track extraction, the labeller
+and the segmentation; one implementation).
+
+:func:`ground_plane`: planes are fitted by RANSAC (``iterations`` random triples) to the low
+points (z below the ``low_quantile`` of the cloud plus 0.5 m; at most ``max_candidates`` of
+them, drawn at random, score the hypotheses); only nearly horizontal planes (normal within
+``max_tilt_deg`` of +z) count; the plane with most inliers is refitted by least squares to
+them. When no plane is found (too few points) the fallback is the flat plane
+``z = -sensor_height``. A plane is ``(n, d)`` with ``n . x + d = 0``, unit ``n``, ``n_z > 0``,
+so ``n . x + d`` is the height of ``x`` above it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _fit_plane(p: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares plane ``n . x + d = 0`` (unit n, n_z > 0) through ``p (M, 3)``."""
+    c = p.mean(0)
+    n = np.linalg.svd(p - c, full_matrices=False)[2][-1]
+    n = n if n[2] >= 0 else -n
+    return n, float(-n @ c)
+
+
+def _ransac_plane(cand: np.ndarray, rng, iterations: int, threshold: float,
+                  max_tilt_deg: float) -> tuple[tuple[np.ndarray, float] | None, int]:
+    """The best of ``iterations`` 3-point plane hypotheses on ``cand (M, 3)``: ``((n, d), count)``.
+
+    Hypotheses tilted more than ``max_tilt_deg`` or degenerate are skipped; the first one with
+    the most points within ``threshold`` wins (``(None, 0)`` when none is valid). All triples
+    are drawn first (the same draws, in the same order, as one at a time) and scored at once.
+    """
+    if len(cand) < 3 or iterations < 1:
+        return None, 0
+    tri = cand[np.stack([rng.choice(len(cand), 3, replace=False) for _ in range(iterations)])]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (I, 3)
+    norm = np.linalg.norm(n, axis=1)
+    ok = (norm >= 1e-9) & (np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * norm)
+    if not ok.any():
+        return None, 0
+    n, tri = n[ok] / norm[ok, None] * np.sign(n[ok, 2])[:, None], tri[ok]
+    offs = np.einsum("ij,ij->i", n, tri[:, 0])  # (I',)
+    counts = np.count_nonzero(np.abs(cand @ n.T - offs) < threshold, axis=0)  # (I',)
+    i = int(np.argmax(counts))
+    if counts[i] <= 0:
+        return None, 0
+    return (n[i], float(-offs[i])), int(counts[i])
+
+
+def ground_plane(points, threshold: float = 0.2, sensor_height: float = 1.73,
+                 iterations: int = 100, max_tilt_deg: float = 10.0, low_quantile: float = 0.3,
+                 seed: int = 0, max_candidates: int = 5000) -> tuple[np.ndarray, float]:
+    """The ground plane ``n . x + d = 0`` (unit ``n``, ``n_z > 0``) of ``(N, 3)`` sensor-frame
+    points (module doc); the flat plane ``z = -sensor_height`` when none is found."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    flat = (np.array([0.0, 0.0, 1.0]), float(sensor_height))
+    if len(points) == 0:
+        return flat
+    z_lo = np.quantile(points[:, 2], low_quantile) + 0.5
+    cand = points[points[:, 2] <= z_lo]
+    rng = np.random.default_rng(seed)
+    if len(cand) > max_candidates:  # plane hypotheses are scored on a random subset
+        cand = cand[rng.choice(len(cand), max_candidates, replace=False)]
+    best, best_count = _ransac_plane(cand, rng, iterations, threshold, max_tilt_deg)
+    if best is None or best_count < 3:
+        log.debug("ground: no plane found, flat plane at z = %.2f", -sensor_height)
+        return flat
+    n, d = best
+    inl = cand[np.abs(cand @ n + d) < threshold]
+    n2, d2 = _fit_plane(inl)
+    if n2[2] < np.cos(np.radians(max_tilt_deg)):
+        return n, d
+    return n2, d2
+
+

@@ -1,0 +1,207 @@
+"""The sequence layer: one small protocol for a driving log, whatever dataset it comes from.
+
+A :class:`DrivingLog` is a sequence of LiDAR frames with their timestamps, the annotated 3D
+boxes of each frame, the ego motion and the cameras. Every reader in :mod:`seqshape.data`
+(KITTI tracking, Argoverse 2, nuScenes) implements it, and everything above (track extraction,
+evaluation, the amodal labeller) takes a ``DrivingLog``, never a dataset's own class. A new
+dataset is one file in ``seqshape.data`` with a subclass and an entry in :data:`DATASETS`.
+
+Frames and units (docs/architecture.md):
+
+* **Sensor frame** of a frame: the ego vehicle's axes (x forward, y left, z up) with the origin
+  at the (top) LiDAR. KITTI's velodyne frame is one; Argoverse 2 (ego frame, origin on the
+  ground under the rear axle) is shifted by the ``up_lidar`` position; nuScenes LIDAR_TOP
+  points are rotated into the ego axes and keep the LiDAR's position as origin.
+* **Boxes** (:class:`Box3D`) are in that frame: ``centre`` of the box, ``size`` (length, width,
+  height), ``yaw`` about +z (0 = facing +x); ``pose = (x, y, z, yaw)`` as in
+  :mod:`seqshape.geometry`.
+* **Ego pose** of a frame: (4, 4) mapping its sensor-frame points into the log's reference
+  frame, the sensor frame of the log's first frame (small numbers, whatever the dataset's
+  world frame is).
+* **Frames** are integers: KITTI frame numbers, or positions in the log's sorted sweeps
+  (Argoverse 2) or keyframes (nuScenes). ``timestamp(frame)`` is in seconds.
+
+Vehicle classes: each dataset category maps to one of :data:`VEHICLE_CLASSES` or to None
+(not a vehicle). ``Box3D.category`` keeps the dataset's own name.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from seqshape.camera import PinholeCamera
+from seqshape.errors import ConfigError
+
+#: seqshape's vehicle classes, smallest first.
+VEHICLE_CLASSES = ("car", "van", "truck", "bus", "trailer")
+
+#: KINS category ids written by the labeller for each class (KINS defines car 4, truck 6,
+#: van 7, misc 8; bus and trailer have no KINS id and get ids of their own, listed in the
+#: ``categories`` of every file written).
+CLASS_TO_KINS = {"car": 4, "van": 7, "truck": 6, "bus": 9, "trailer": 10}
+
+
+def parse_classes(text: str | Iterable[str] | None) -> tuple[str, ...]:
+    """``"car,van"`` (or a list) -> ``("car", "van")``; None -> every vehicle class."""
+    if text is None:
+        return VEHICLE_CLASSES
+    items = [c.strip().lower() for c in (text.split(",") if isinstance(text, str) else text)]
+    items = [c for c in items if c]
+    bad = [c for c in items if c not in VEHICLE_CLASSES]
+    if bad or not items:
+        raise ConfigError(f"unknown vehicle class(es) {bad or items}: choose from "
+                          f"{', '.join(VEHICLE_CLASSES)}")
+    return tuple(dict.fromkeys(items))
+
+
+@dataclass
+class Box3D:
+    """One annotated 3D box of one frame, in that frame's sensor frame.
+
+    ``track_id``: the dataset's id of the object (stable over the log); ``category``: the
+    dataset's own category name; ``cls``: seqshape's vehicle class (None: not a vehicle);
+    ``num_points``: the dataset's count of LiDAR points inside the box, where it has one;
+    ``visibility``: the dataset's visibility or occlusion value, where it has one;
+    ``extra``: anything else the reader keeps (documented by the reader).
+    """
+
+    track_id: str
+    category: str
+    cls: str | None
+    centre: np.ndarray
+    size: np.ndarray
+    yaw: float
+    num_points: int | None = None
+    visibility: float | None = None
+    extra: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self):
+        self.centre = np.asarray(self.centre, dtype=np.float64).reshape(3)
+        self.size = np.asarray(self.size, dtype=np.float64).reshape(3)
+        self.yaw = float(self.yaw)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(4,) ``(x, y, z, yaw)`` of the box centre, sensor frame."""
+        return np.r_[self.centre, self.yaw]
+
+
+class DrivingLog(abc.ABC):
+    """One driving log (a KITTI sequence, an Argoverse 2 log, a nuScenes scene).
+
+    Subclasses set ``dataset`` (short name, e.g. ``"av2"``), ``name`` (the log id), ``root``
+    (the dataset folder it was read from), ``sensor`` (LiDAR model) and ``frames`` (sorted
+    frame numbers), and implement the abstract methods. ``camera_names`` lists the cameras
+    (empty without any); ``default_camera`` is the one labels are written for by default.
+    """
+
+    dataset: str = ""
+    name: str = ""
+    root: Path = Path(".")
+    sensor: str = ""
+    frames: list[int]
+    camera_names: tuple[str, ...] = ()
+    default_camera: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}({self.dataset}:{self.name}, {len(self.frames)} frames, "
+                f"cameras {list(self.camera_names)})")
+
+    @abc.abstractmethod
+    def timestamp(self, frame: int) -> float:
+        """Time of the frame's LiDAR sweep, seconds (any fixed origin)."""
+
+    @abc.abstractmethod
+    def points(self, frame: int) -> np.ndarray:
+        """The frame's LiDAR sweep, ``(N, C)`` float32 with ``C >= 3``; x, y, z in the sensor
+        frame (extra columns: the reader's, e.g. intensity)."""
+
+    @abc.abstractmethod
+    def boxes(self, frame: int) -> list[Box3D]:
+        """The annotated boxes of the frame (empty when it has none)."""
+
+    def ego_pose(self, frame: int) -> np.ndarray | None:
+        """(4, 4) sensor frame of ``frame`` -> the log's reference frame, or None (unknown)."""
+        return None
+
+    def camera(self, name: str | None = None, frame: int | None = None) -> PinholeCamera:
+        """Camera ``name`` (default: ``default_camera``) as seen from the sensor frame of
+        ``frame`` (its extrinsics may follow the ego motion between the sweep and the image)."""
+        raise ConfigError(f"{self.dataset} log {self.name} has no cameras")
+
+    def image_path(self, frame: int, camera: str | None = None) -> Path | None:
+        """The image of ``camera`` nearest to the frame's sweep, or None when there is none."""
+        return None
+
+    def image_file_name(self, frame: int, camera: str | None = None) -> str:
+        """The ``file_name`` of the frame's image in KINS/COCO files: the image's path relative
+        to ``root`` when it exists, else a made-up ``LOG/CAMERA/FFFFFF`` name."""
+        path = self.image_path(frame, camera)
+        if path is not None:
+            try:
+                return Path(path).relative_to(self.root).as_posix()
+            except ValueError:
+                return Path(path).as_posix()
+        return f"{self.name}/{camera or self.default_camera}/{frame:06d}"
+
+    # convenience, shared by every dataset
+
+    def timestamps(self, frames: Sequence[int] | None = None) -> np.ndarray:
+        """Timestamps (s) of ``frames`` (default: all)."""
+        return np.array([self.timestamp(f) for f in (self.frames if frames is None else frames)],
+                        dtype=np.float64)
+
+    def restrict(self, max_frames: int | None) -> DrivingLog:
+        """The log as if it ended after its first ``max_frames`` frames (in place; returns it)."""
+        if max_frames is not None:
+            if max_frames < 1:
+                raise ConfigError(f"max_frames must be >= 1, got {max_frames}")
+            self.frames = list(self.frames[:max_frames])
+        return self
+
+    def vehicle_boxes(self, frame: int, classes: Iterable[str] | None = None) -> list[Box3D]:
+        """The frame's boxes whose class is one of ``classes`` (default: every vehicle class)."""
+        wanted = set(VEHICLE_CLASSES if classes is None else classes)
+        return [b for b in self.boxes(frame) if b.cls in wanted]
+
+    @classmethod
+    def log_names(cls, root) -> list[str]:
+        """The names of the logs found under ``root`` (for ``--sequence`` defaults)."""
+        raise NotImplementedError
+
+
+#: dataset name -> "module:class" of its reader (a :class:`DrivingLog` subclass whose
+#: constructor takes ``(root, name)`` and whose ``log_names(root)`` lists the logs).
+DATASETS = {
+    "kitti": "seqshape.data.kitti:KittiTrackingSequence",
+    "av2": "seqshape.data.av2:Av2Log",
+    "nuscenes": "seqshape.data.nuscenes:NuScenesLog",
+}
+
+
+def log_class(dataset: str) -> type[DrivingLog]:
+    """The reader class of ``dataset`` (a key of :data:`DATASETS`)."""
+    import importlib
+
+    if dataset not in DATASETS:
+        raise ConfigError(f"unknown dataset {dataset!r}: choose from {', '.join(DATASETS)}")
+    module, cls = DATASETS[dataset].split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def log_names(dataset: str, root) -> list[str]:
+    """The logs of ``dataset`` under ``root``."""
+    return log_class(dataset).log_names(root)
+
+
+def open_log(dataset: str, root, name: str) -> DrivingLog:
+    """Open log ``name`` of ``dataset`` under ``root``."""
+    return log_class(dataset)(root, name)
