@@ -24,7 +24,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("evaluate", "evaluate shape and pose estimates on a dataset's val split"),
     "scenes": ("scenes", "generate camera+LiDAR scenes in the KITTI tracking layout"),
     "show-scene": ("show_scene", "draw one frame of a scene with its amodal ground truth"),
-    "label": ("label", "produce amodal mask labels for a KITTI tracking sequence"),
+    "tracks": ("tracks", "extract vehicle tracks from real driving logs (KITTI, Argoverse 2, "
+                         "nuScenes) as a track dataset"),
+    "label": ("label", "produce amodal mask labels for a driving log with cameras"),
     "evaluate-masks": ("evaluate_masks", "score amodal mask labels against a reference"),
 }
 
