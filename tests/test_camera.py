@@ -145,3 +145,24 @@ def test_docstring_examples():
 
     result = doctest.testmod(mod)
     assert result.attempted > 0 and result.failed == 0
+
+
+def test_radial_distortion_round_trip_and_no_fold_back():
+    from seqshape.camera import PinholeCamera
+
+    K = np.array([[1000.0, 0, 800], [0, 1000.0, 600], [0, 0, 1]])
+    t = np.array([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]])  # x fwd -> z
+    cam = PinholeCamera.from_intrinsics(K, t, (1600, 1200), radial=(-0.27, 0.08, -0.01))
+    plain = PinholeCamera.from_intrinsics(K, t, (1600, 1200))
+    pts = np.array([[10.0, 0.0, 0.0], [10.0, -4.0, -3.0], [10.0, 5.0, 2.0]])
+    uv, depth = cam.project(pts)
+    uv0, _ = plain.project(pts)
+    np.testing.assert_allclose(uv[0], [800, 600])  # nothing moves at the principal point
+    # by hand: point 2 has normalised (0.4, 0.3), r^2 = 0.25, scale 1 - 0.0675 + 0.005 - 0.00015625
+    s = 1 - 0.27 * 0.25 + 0.08 * 0.0625 - 0.01 * 0.015625
+    np.testing.assert_allclose(uv[1], [800 + 400 * s, 600 + 300 * s])
+    np.testing.assert_allclose(cam.unproject(uv, depth), pts, atol=1e-6)
+    assert np.linalg.norm(uv[2] - [800, 600]) < np.linalg.norm(uv0[2] - [800, 600])  # barrel
+    # far off-axis (past the radius where the polynomial turns) never folds into the image
+    far = np.array([[1.0, -40.0, 0.0]])
+    assert not cam.in_image(*cam.project(far)).any()

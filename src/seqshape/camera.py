@@ -130,6 +130,11 @@ class PinholeCamera:
     (width, height); pixel centres sit at integer coordinates. ``depth`` is the third
     homogeneous coordinate, metres along the optical axis.
 
+    ``radial`` = ``(k1, k2, k3)`` (only with ``P = [K | 0]``) adds radial lens distortion,
+    ``x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6)`` on normalised coordinates (Argoverse 2's
+    model); beyond the radius where that polynomial stops growing, a point would fold back
+    into the image, so its pixel is NaN (never in the image).
+
     >>> cam = PinholeCamera.from_intrinsics(np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]]),
     ...                                     np.eye(4), (100, 80))
     >>> uv, depth = cam.project(np.array([[1.0, 0.5, 10.0]]))
@@ -141,9 +146,14 @@ class PinholeCamera:
     T_cam_sensor: np.ndarray
     image_size: tuple[int, int]
     name: str = "camera"
+    radial: tuple[float, ...] = ()
 
     def __post_init__(self):
         self.P = np.asarray(self.P, dtype=np.float64).reshape(3, 4)
+        self.radial = tuple(float(k) for k in self.radial)
+        if self.radial and (len(self.radial) > 3 or np.any(self.P[:, 3] != 0)):
+            raise ValueError(f"camera {self.name}: radial distortion takes up to 3 "
+                             f"coefficients and a P = [K | 0]")
         self.T_cam_sensor = np.asarray(self.T_cam_sensor, dtype=np.float64).reshape(4, 4)
         self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
         if min(self.image_size) <= 0:
@@ -151,10 +161,24 @@ class PinholeCamera:
                              f"{self.image_size}")
 
     @classmethod
-    def from_intrinsics(cls, K, T_cam_sensor, image_size, name: str = "camera") -> PinholeCamera:
+    def from_intrinsics(cls, K, T_cam_sensor, image_size, name: str = "camera",
+                        radial=()) -> PinholeCamera:
         """A camera from its (3, 3) intrinsic matrix and sensor -> camera transform."""
         return cls(P=np.c_[np.asarray(K, dtype=np.float64).reshape(3, 3), np.zeros(3)],
-                   T_cam_sensor=T_cam_sensor, image_size=image_size, name=name)
+                   T_cam_sensor=T_cam_sensor, image_size=image_size, name=name,
+                   radial=tuple(radial))
+
+    def _r2_max(self) -> float:
+        """Squared normalised radius up to which the distortion grows monotonically."""
+        k = np.r_[self.radial, np.zeros(3 - len(self.radial))]
+        r2 = np.linspace(0.0, 16.0, 16001)[1:]  # up to 4x the focal length off-axis
+        grow = 1 + 3 * k[0] * r2 + 5 * k[1] * r2**2 + 7 * k[2] * r2**3  # d(r s(r)) / dr
+        bad = np.flatnonzero(grow <= 0)
+        return float(r2[bad[0] - 1]) if len(bad) else np.inf
+
+    def _scale(self, r2: np.ndarray) -> np.ndarray:
+        k = np.r_[self.radial, np.zeros(3 - len(self.radial))]
+        return 1 + k[0] * r2 + k[1] * r2**2 + k[2] * r2**3
 
     @property
     def K(self) -> np.ndarray:
@@ -182,11 +206,32 @@ class PinholeCamera:
 
     def project(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Sensor-frame points (N, 3) -> ``(uv (N, 2), depth (N,))`` float64."""
-        return _project(points, self.matrix)
+        uv, depth = _project(points, self.matrix)
+        if not self.radial:
+            return uv, depth
+        f, c = np.diag(self.P)[:2], self.P[:2, 2]
+        xy = (uv - c) / f
+        r2 = np.sum(xy * xy, axis=1)
+        with np.errstate(invalid="ignore"):
+            out = xy * self._scale(r2)[:, None] * f + c
+        out[~(r2 <= self._r2_max())] = np.nan
+        return out, depth
+
+    def undistort(self, uv) -> np.ndarray:
+        """Pixels (N, 2) of this camera -> the pixels an undistorted camera would see."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if not self.radial:
+            return uv
+        f, c = np.diag(self.P)[:2], self.P[:2, 2]
+        target = (uv - c) / f
+        xy = target.copy()
+        for _ in range(50):  # fixed point x = x_d / s(|x|^2); contracts for real lenses
+            xy = target / self._scale(np.sum(xy * xy, axis=1))[:, None]
+        return xy * f + c
 
     def unproject(self, uv, depth) -> np.ndarray:
         """Inverse of :meth:`project`: pixels (N, 2) and depths (N,) -> sensor frame (N, 3)."""
-        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        uv = self.undistort(uv)
         depth = np.asarray(depth, dtype=np.float64).reshape(-1)
         m = self.matrix
         hom = np.c_[uv * depth[:, None], depth] - m[:, 3]

@@ -36,10 +36,11 @@ under the rear axle. seqshape's **sensor frame** is the ego axes with the origin
 * Cameras: the ring cameras of ``intrinsics.feather`` (:data:`RING_CAMERAS`; stereo cameras
   can be asked for by name). AV2's camera extrinsics are already in the optical convention
   (camera x right, y down, z forward), so ``T_cam_sensor = inv(ego_SE3_cam) @ ego_SE3_sensor``.
-  Projection is a plain pinhole, as in the official ``av2`` API: the radial distortion
-  ``k1..k3`` is **not** applied by :meth:`Av2Log.camera`. :func:`distort_pixels` applies it to
-  projected pixels for a caller that wants it (``Av2Log.distortion(name)``); with AV2's values
-  it moves image corners by about 200 px and nothing at the principal point.
+  Projection is a plain pinhole, as in the official ``av2`` API: the released images are
+  already undistorted (the maintainers, av2-api issues #219 and #226, and the AV2 user guide),
+  so the radial ``k1..k3`` of ``intrinsics.feather`` describe the raw lens and are **not**
+  applied by :meth:`Av2Log.camera`. :func:`distort_pixels` applies them for a caller working
+  on raw images (``Av2Log.distortion(name)``).
 
 Errors: a missing folder or file, an unreadable table, a missing or null column, a wrong column
 type, a non-finite value, a sweep or image file name that is not a timestamp and a log without
