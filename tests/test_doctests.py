@@ -5,7 +5,7 @@ import importlib
 
 import pytest
 
-MODULES = ["seqshape.geometry", "seqshape.errors", "seqshape.camera", "seqshape.data.av2"]
+MODULES = ["seqshape.geometry", "seqshape.errors", "seqshape.camera", "seqshape.data.av2", "seqshape.data.nuscenes"]
 
 
 @pytest.mark.parametrize("name", MODULES)
