@@ -306,3 +306,170 @@ def test_flip_diagnostic_counts_frames_tracks_and_the_rest():
     assert table["rot_deg"] == pytest.approx(np.degrees(np.nanmean(rot)))
     md = metrics_markdown({"sequential": table, "details": {"sequential": details}})
     assert "sequential 2 of 5 frames in 2 tracks, rotation without them 55.39 deg" in md
+
+
+# --------------------------------------------------------------------------------------------
+# real tracks: radial/tangential, extents, flips, breakdowns, the box fit row
+
+
+def test_radial_tangential_hand_computed():
+    from seqshape.evaluation.runner import radial_tangential
+
+    gt = np.array([3.0, 4.0, -1.0, 0.2])  # unit line of sight (0.6, 0.8), normal (-0.8, 0.6)
+    est = gt + [0.5 * 0.6 - 0.2 * 0.8, 0.5 * 0.8 + 0.2 * 0.6, 0.3, 0.0]
+    radial, tangential = radial_tangential(est, gt)
+    assert radial == pytest.approx(0.5) and tangential == pytest.approx(0.2)
+    radial, tangential = radial_tangential([2.4, 3.2, 0, 0], gt)  # 1 m too close
+    assert radial == pytest.approx(-1.0) and tangential == pytest.approx(0.0, abs=1e-12)
+
+
+def test_extents_of_a_box_cloud_and_of_a_fitted_box():
+    from seqshape.evaluation.runner import estimate_extents
+    from seqshape.model.boxfit import BoxEstimate
+
+    size = (4.0, 1.7, 1.5)
+    pose = np.array([10.0, -2.0, -1.0, 0.7])
+    cloud = canonical_to_sensor(box_surface(1024, 3, size), pose)
+    stray = np.r_[cloud, [[30.0, 30.0, 0.0]] * 5]  # under 1 %: ignored by the percentiles
+    np.testing.assert_allclose(estimate_extents(Estimate("a", stray, pose, 10)), size[:2],
+                               atol=0.01)
+    # seen with a yaw 90 degrees off, the same cloud has length and width swapped
+    turned = pose + [0, 0, 0, np.pi / 2]
+    np.testing.assert_allclose(estimate_extents(Estimate("a", cloud, turned, 10)),
+                               size[1::-1], atol=0.01)
+    boxed = BoxEstimate("a", cloud, pose, 10, np.array([3.0, 1.0, 1.2]))
+    np.testing.assert_allclose(estimate_extents(boxed), [3.0, 1.0])
+    assert np.isnan(estimate_extents(Estimate("a", np.zeros((0, 3)), pose, 0))).all()
+
+
+TRUCK = (8.0, 2.5, 3.0)
+
+
+def make_real_track(i: int, cls: str, size, reference: bool, n_frames: int = 6) -> Track:
+    """A real-like track: meta as ``seqshape tracks`` writes it, no split, points of the side
+    facing the sensor, ``complete`` an accumulated-style reference or None."""
+    rng = np.random.default_rng(100 + i)
+    surface = box_surface(4096, 200 + i, size)
+    half = np.asarray(size) / 2
+    t = np.arange(n_frames)
+    poses = np.c_[6.0 + 4 * i + 0.6 * t, (-1) ** i * (2.5 + i) + 0.1 * t, np.full(n_frames, -1.0),
+                  np.full(n_frames, 0.05 * i)]
+    points = []
+    for f in range(n_frames):
+        # the faces whose outward side looks at the sensor (canonical frame)
+        sensor = sensor_to_canonical(np.zeros((1, 3)), poses[f])[0]
+        on = np.isclose(np.abs(surface), half, atol=1e-5)
+        seen = on & (np.sign(surface) * sensor > half)
+        visible = canonical_to_sensor(surface[seen.any(axis=1)], poses[f])
+        k = 0 if f == 2 else min(len(visible), [5, 40, 0, 150, 400, 1200][f % 6])
+        points.append(visible[rng.choice(len(visible), k, replace=False)])
+    meta = {"source": "real", "dataset": "av2", "log": "log0", "class": cls,
+            "category": cls.upper(), "frames": t.tolist()}
+    complete = None
+    if reference:
+        meta["reference"] = {"kind": "accumulated"}
+        complete = box_surface(2048, 300 + i, size)
+    return Track(f"log0_{cls}{i}", points, poses, complete, size, 0.1 * t, meta)
+
+
+@dataclass
+class Flipper:
+    """The true pose, its yaw turned by 180 degrees on odd frames of each track."""
+
+    tracks: dict
+    recurrent: bool = False
+
+    def __post_init__(self):
+        self.t: dict[str, int] = {}
+
+    def reset(self, track_id=None):
+        self.t.clear() if track_id is None else self.t.pop(track_id, None)
+
+    def step(self, track_ids, point_lists):
+        out = []
+        for tid in track_ids:
+            tr = self.tracks[tid]
+            t = self.t.get(tid, detection_span(tr)[0])
+            self.t[tid] = t + 1
+            pose = tr.poses[t] + [0, 0, 0, np.pi * (t % 2)]
+            shape = canonical_to_sensor(box_surface(512, t, tr.size), pose)
+            out.append(Estimate(tid, shape, pose, len(tr.points[t])))
+        return out
+
+
+def test_flip_rate_axis_error_and_breakdown_on_a_flipped_track():
+    from seqshape.evaluation.report import summarize
+
+    tr = make_real_track(0, "car", SIZE, reference=True)
+    res = evaluate_tracks({"sequential": Flipper({tr.track_id: tr}),
+                           "baseline": Flipper({tr.track_id: tr})}, [tr], emd_every=0,
+                          workers=0)
+    rec = res.of("sequential")
+    odd = rec["frame"] % 2 == 1
+    np.testing.assert_allclose(rec["rot_rad"][odd], np.pi, atol=1e-9)
+    np.testing.assert_allclose(rec["rot_axis_rad"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(rec["trans_m"], 0.0, atol=1e-12)
+    # the extents of a box cloud seen in its own (flipped or not) frame are the box's
+    np.testing.assert_allclose(rec["length_err_m"], 0.0, atol=0.02)
+    np.testing.assert_allclose(rec["width_err_m"], 0.0, atol=0.02)
+    assert set(rec["class"]) == {"car"}
+    summary = summarize(res)
+    assert res.settings["real"] is True
+    d = summary["details"]["sequential"]
+    assert d["rot_flip_rate"] == pytest.approx(odd.mean())
+    assert d["rot_axis_deg"] == pytest.approx(0.0, abs=1e-6)
+    allf = summary["breakdown"]["all"]["all"]["sequential"]
+    assert allf["flip_pct"] == pytest.approx(100 * odd.mean())
+    assert allf["n_frames"] == len(rec["frame"]) and allf["rot_deg_without_flips_median"] == 0
+    points = summary["breakdown"]["points"]
+    assert set(points) == {"0", "1-9", "30-99", "100-299", "300-999", "1000+"}
+    assert points["0"]["sequential"]["n_frames"] == 1
+
+
+def test_evaluate_cli_on_a_real_like_dataset(tmp_path):
+    pytest.importorskip("seqshape.model.estimator")
+    from seqshape.cli import main
+
+    tracks = [make_real_track(0, "car", SIZE, True), make_real_track(1, "truck", TRUCK, True),
+              make_real_track(2, "car", SIZE, False)]
+    data = write_dataset(tmp_path / "real", tracks)
+    out = tmp_path / "eval"
+    rc = main(["evaluate", "--data", str(data.path), "--checkpoint", "pretrained",
+               "--out", str(out), "--emd-points", "64", "--emd-every", "2", "--workers", "0",
+               "--view", "none"])
+    assert rc == 0
+    summary = json.loads((out / "metrics.json").read_text())
+    assert summary["settings"]["methods"] == ["sequential", "baseline", "boxfit"]
+    assert summary["settings"]["n_tracks"] == 3 and summary["settings"]["real"]
+    assert summary["settings"]["n_reference_tracks"] == 2
+    groups = summary["breakdown"]["class_group"]
+    assert set(groups) == {"car", "larger (van/truck/bus/trailer)"}
+    assert set(summary["breakdown"]["class"]) == {"car", "truck"}
+    assert groups["car"]["boxfit"]["n_frames"] == 2 * 6  # two car tracks, all frames scored
+    md = (out / "metrics.md").read_text()
+    assert "CD vs accumulated reference (cm)" in md and "(paper)" not in md
+    assert "### Cars vs larger vehicles (medians)" in md and "### By class (means)" in md and "| 1000+ | boxfit |" in md
+    import csv
+
+    with open(out / "per_frame.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == list(FIELDS)
+    no_ref = [r for r in rows if r["track_id"] == tracks[2].track_id]
+    assert no_ref and all(r["cd_m"] == "" and r["emd_m"] == "" for r in no_ref)
+    assert all(r["trans_m"] and r["length_err_m"] and r["radial_m"] for r in no_ref
+               if r["n_points"] != "0" or r["method"] != "boxfit")
+    with_ref = [r for r in rows if r["track_id"] == tracks[1].track_id]
+    assert all(r["cd_m"] for r in with_ref) and any(r["emd_m"] for r in with_ref)
+    assert {r["class"] for r in with_ref} == {"truck"}
+    # the box fit sees an L of the truck in its last, densest frame: its centre and extents
+    # are the truck's within a few cm; its row is off with --no-boxfit
+    best = [r for r in with_ref if r["method"] == "boxfit" and r["frame"] == "5"]
+    assert int(best[0]["n_points"]) > 300
+    for col in ("trans_m", "length_err_m", "width_err_m"):
+        assert abs(float(best[0][col])) < 0.05
+    rc = main(["evaluate", "--data", str(data.path), "--checkpoint", "pretrained",
+               "--out", str(out), "--emd-every", "0", "--workers", "0", "--view", "none",
+               "--no-boxfit", "--split", "all"])
+    assert rc == 0
+    assert json.loads((out / "metrics.json").read_text())["settings"]["methods"] == [
+        "sequential", "baseline"]

@@ -15,10 +15,24 @@ from seqshape.evaluation.metrics import (
     subsample_pair,
     translation_error,
 )
-from seqshape.evaluation.report import PAPER_TABLE, metrics_markdown, summarize, write_metrics
-from seqshape.evaluation.runner import EvalResult, detection_span, evaluate_tracks, predict_track
+from seqshape.evaluation.report import (
+    PAPER_TABLE,
+    breakdown,
+    metrics_markdown,
+    summarize,
+    write_metrics,
+)
+from seqshape.evaluation.runner import (
+    EvalResult,
+    detection_span,
+    estimate_extents,
+    evaluate_tracks,
+    predict_track,
+    radial_tangential,
+)
 
-__all__ = ["PAPER_TABLE", "EvalResult", "cd_floor", "chamfer_distance", "detection_span",
-           "earth_movers_distance", "emd_subsampled", "evaluate_tracks", "metrics_markdown",
-           "pose_errors", "predict_track", "rotation_error", "subsample", "subsample_pair",
-           "summarize", "translation_error", "write_metrics"]
+__all__ = ["PAPER_TABLE", "EvalResult", "breakdown", "cd_floor", "chamfer_distance",
+           "detection_span", "earth_movers_distance", "emd_subsampled", "estimate_extents",
+           "evaluate_tracks", "metrics_markdown", "pose_errors", "predict_track",
+           "radial_tangential", "rotation_error", "subsample", "subsample_pair", "summarize",
+           "translation_error", "write_metrics"]

@@ -21,7 +21,7 @@ from seqshape.evaluation.metrics import subsample
 from seqshape.evaluation.runner import EstimatorLike, predict_track
 from seqshape.geometry import box_corners, sensor_to_canonical
 
-COLORS = {"sequential": "#1f77b4", "baseline": "#ff7f0e"}
+COLORS = {"sequential": "#1f77b4", "baseline": "#ff7f0e", "boxfit": "#9467bd"}
 _EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4),
           (0, 4), (1, 5), (2, 6), (3, 7)]
 
@@ -62,7 +62,10 @@ def _frame_traces(go, track: Track, t: int, ests: Mapping, max_points: int) -> l
                        "black", 3)]
     if track.complete is not None and np.all(np.isfinite(track.poses[t])):
         gt = subsample(track.complete_in_frame(t), min(max_points, len(track.complete)), seed=0)
-        traces += [_scatter(go, gt - centre, "ground truth shape", "#7f7f7f", 1.5, 0.35),
+        ref = track.meta.get("reference")
+        label = ("accumulated reference" if isinstance(ref, dict)
+                 and ref.get("kind") == "accumulated" else "ground truth shape")
+        traces += [_scatter(go, gt - centre, label, "#7f7f7f", 1.5, 0.35),
                    _lines(go, _box_lines(box_corners(track.size, track.poses[t]) - centre),
                           "ground truth box", "#2ca02c")]
     else:

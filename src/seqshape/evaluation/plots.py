@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from seqshape.evaluation.report import LABELS, METRICS
+from seqshape.evaluation.report import LABELS, METRICS, REAL_CD_LABEL
 from seqshape.evaluation.runner import EvalResult
 
-COLORS = {"sequential": "tab:blue", "baseline": "tab:orange"}
+COLORS = {"sequential": "tab:blue", "baseline": "tab:orange", "boxfit": "tab:green"}
 
 
 def _pyplot():
@@ -82,7 +82,8 @@ def _plot_against(result: EvalResult, x_col: str, edges: np.ndarray, xlabel: str
         if key == "cd_cm" and floor_cm is not None:
             ax.axhline(floor_cm, color="gray", ls="--", lw=1, label="CD floor")
         ax.set_xlabel(xlabel)
-        ax.set_ylabel(LABELS[key])
+        real_cd = key == "cd_cm" and result.settings.get("real")
+        ax.set_ylabel(REAL_CD_LABEL if real_cd else LABELS[key])
         ax.grid(alpha=0.3)
         ax.set_ylim(bottom=0)
         if not ax.lines:

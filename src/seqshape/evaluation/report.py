@@ -14,6 +14,19 @@ track's floor weighted by its number of frames with a CD.
                           180-degree flips: "rot_flip_frames", "rot_flip_tracks",
                           "rot_deg_without_flips"}},
      "floor": {...}, "settings": {...}, "paper": {...}}
+
+``details`` also holds, per method, the flip rate (``rot_flip_rate``: flipped frames over frames
+with a known pose), the rotation error modulo 180 degrees (``rot_axis_deg``), the signed radial
+and absolute tangential translation errors and the signed and absolute length/width errors
+(cm), each as a mean and a median.
+
+Real data (``settings["real"]``: a track's meta says ``source: "real"``): ``metrics.json`` gains
+``"breakdown"``: ``{"all" | "class_group" | "class" | "distance" | "points": {group: {method:
+stats}}}`` with :data:`BREAKDOWN_STATS` (medians and means, cm / deg / %) per group: all frames,
+car vs larger vehicles (van, truck, bus, trailer), each class, distance bins
+:data:`DISTANCE_BINS` (m) and points-per-frame bins :data:`POINT_BINS`. ``metrics.md`` labels
+the CD "CD vs accumulated reference", leaves out the paper's rows (synthetic data) and adds the
+breakdown tables (medians, then means).
 """
 
 from __future__ import annotations
@@ -42,8 +55,26 @@ LABELS = {"cd_cm": "CD (cm)", "emd_m": "EMD (m)", "trans_cm": "Translation (cm)"
 #: Diagnostics beyond Table I, summarised the same way (not plotted).
 EXTRA_METRICS = {"shape_cd_cm": ("cd_true_pose_m", 100.0)}
 EXTRA_LABELS = {"shape_cd_cm": "shape CD at the true pose (cm)"}
+REAL_CD_LABEL = "CD vs accumulated reference (cm)"
 #: A rotation error above this (degrees) counts as a 180-degree flip: the box faces backwards.
 FLIP_DEG = 150.0
+#: Per-method diagnostics in ``details``: key -> (record column, scale, take absolute value).
+POSE_EXTENT_METRICS = {
+    "rot_axis_deg": ("rot_axis_rad", 180.0 / math.pi, False),
+    "radial_cm": ("radial_m", 100.0, False), "radial_abs_cm": ("radial_m", 100.0, True),
+    "tangential_abs_cm": ("tangential_m", 100.0, True),
+    "length_err_cm": ("length_err_m", 100.0, False),
+    "length_abs_cm": ("length_err_m", 100.0, True),
+    "width_err_cm": ("width_err_m", 100.0, False), "width_abs_cm": ("width_err_m", 100.0, True),
+}
+#: Statistics of each breakdown group (medians and means): key -> (column, scale, absolute).
+BREAKDOWN_STATS = {"centre_cm": ("trans_m", 100.0, False), **POSE_EXTENT_METRICS,
+                   "rot_deg": ("rot_rad", 180.0 / math.pi, False),
+                   "cd_cm": ("cd_m", 100.0, False)}
+LARGER = ("van", "truck", "bus", "trailer")
+#: Distance bins (m, lower edges; the last is open) and points-per-frame bins (lower edges).
+DISTANCE_BINS = (0.0, 10.0, 20.0, 30.0, 50.0)
+POINT_BINS = (0, 1, 10, 30, 100, 300, 1000)
 
 
 def _mean(x: np.ndarray) -> float | None:
@@ -74,8 +105,74 @@ def method_summary(rec: dict[str, np.ndarray]) -> tuple[dict[str, float | None],
     known = np.isfinite(rot)
     flip = known & (rot > FLIP_DEG)
     details.update(rot_flip_frames=int(flip.sum()), rot_flip_tracks=len(np.unique(tracks[flip])),
-                   rot_deg_without_flips=_mean(rot[known & ~flip]))
+                   rot_deg_without_flips=_mean(rot[known & ~flip]),
+                   rot_deg_without_flips_median=_median(rot[known & ~flip]),
+                   rot_flip_rate=float(flip.sum() / known.sum()) if known.any() else None)
+    for key, (col, scale, absolute) in POSE_EXTENT_METRICS.items():
+        if col in rec:
+            v = rec[col] * scale
+            v = np.abs(v) if absolute else v
+            details[key], details[f"{key}_median"] = _mean(v), _median(v)
     return table, details
+
+
+def group_stats(rec: dict[str, np.ndarray], sel: np.ndarray) -> dict[str, Any]:
+    """:data:`BREAKDOWN_STATS` (``*_median`` and ``*_mean``), frame and track counts, the flip
+    rate (%) and the rotation without flips over the frames ``sel`` of one method."""
+    out: dict[str, Any] = {"n_frames": int(sel.sum()),
+                           "n_tracks": int(len(np.unique(rec["track_id"][sel])))}
+    for key, (col, scale, absolute) in BREAKDOWN_STATS.items():
+        v = rec[col][sel] * scale
+        v = np.abs(v) if absolute else v
+        out[f"{key}_median"], out[f"{key}_mean"] = _median(v), _mean(v)
+    rot = np.degrees(rec["rot_rad"][sel])
+    known = np.isfinite(rot)
+    flip = known & (rot > FLIP_DEG)
+    out["flip_pct"] = float(100.0 * flip.sum() / known.sum()) if known.any() else None
+    out["rot_deg_without_flips_median"] = _median(rot[known & ~flip])
+    out["rot_deg_without_flips_mean"] = _mean(rot[known & ~flip])
+    return out
+
+
+def _bin_labels(edges: tuple, unit: str, integer: bool) -> list[str]:
+    labels = []
+    for i, lo in enumerate(edges):
+        hi = edges[i + 1] if i + 1 < len(edges) else None
+        if integer:
+            top = None if hi is None else hi - 1
+            labels.append(f"{lo}+" if top is None else str(lo) if top == lo else f"{lo}-{top}")
+        else:
+            labels.append(f"{lo:g}+ {unit}" if hi is None else f"{lo:g}-{hi:g} {unit}")
+    return labels
+
+
+def frame_groups(rec: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
+    """Boolean masks of the breakdown groups (module doc) over one method's records; empty
+    groups are left out."""
+    cls = rec["class"]
+    groups: dict[str, dict[str, np.ndarray]] = {
+        "all": {"all": np.ones(len(cls), bool)},
+        "class_group": {"car": cls == "car", "larger (van/truck/bus/trailer)": np.isin(cls, LARGER),
+                        "unknown class": cls == ""},
+        "class": {c: cls == c for c in sorted(set(cls.tolist())) if c},
+    }
+    for name, col, edges, unit, integer in (("distance", "distance_m", DISTANCE_BINS, "m", False),
+                                            ("points", "n_points", POINT_BINS, "", True)):
+        which = np.digitize(rec[col], edges) - 1
+        groups[name] = {lab: which == i
+                        for i, lab in enumerate(_bin_labels(edges, unit, integer))}
+    return {k: {g: m for g, m in v.items() if m.any()} for k, v in groups.items()}
+
+
+def breakdown(result: EvalResult) -> dict[str, dict[str, dict[str, Any]]]:
+    """``{breakdown: {group: {method: group_stats}}}`` (module doc)."""
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for m in result.methods:
+        rec = result.of(m)
+        for kind, groups in frame_groups(rec).items():
+            for g, sel in groups.items():
+                out.setdefault(kind, {}).setdefault(g, {})[m] = group_stats(rec, sel)
+    return out
 
 
 def floor_summary(result: EvalResult, method: str) -> dict[str, Any]:
@@ -106,6 +203,8 @@ def summarize(result: EvalResult, reference: str = "sequential") -> dict[str, An
     out["floor"] = {"reference_method": ref, **floors[ref], "per_method": floors}
     out["settings"] = result.settings
     out["paper"] = PAPER_TABLE
+    if result.settings.get("real"):
+        out["breakdown"] = breakdown(result)
     return out
 
 
@@ -117,20 +216,24 @@ def _fmt(v: float | None, key: str) -> str:
 
 def metrics_markdown(summary: dict[str, Any]) -> str:
     """A markdown table of ours beside the paper's Table I, plus the CD floor and settings."""
-    head = "| Method | " + " | ".join(LABELS.values()) + " |"
-    lines = [head, "|" + "---|" * (len(LABELS) + 1)]
+    s = summary.get("settings", {})
+    real = bool(s.get("real"))
+    labels = {**LABELS, "cd_cm": REAL_CD_LABEL} if real else LABELS
+    head = "| Method | " + " | ".join(labels.values()) + " |"
+    lines = [head, "|" + "---|" * (len(labels) + 1)]
     methods = [m for m in ("baseline", "sequential") if m in summary]
     methods += [m for m in summary.get("details", {}) if m not in methods]
     for m in methods:
-        row = [_fmt(summary[m].get(k), k) for k in LABELS]
-        lines.append(f"| {m} (ours) | " + " | ".join(row) + " |")
-        if m in PAPER_TABLE:
-            row = [_fmt(PAPER_TABLE[m][k], k) for k in LABELS]
+        row = [_fmt(summary[m].get(k), k) for k in labels]
+        lines.append(f"| {m}{'' if real else ' (ours)'} | " + " | ".join(row) + " |")
+        if m in PAPER_TABLE and not real:
+            row = [_fmt(PAPER_TABLE[m][k], k) for k in labels]
             lines.append(f"| {m} (paper) | " + " | ".join(row) + " |")
-    s = summary.get("settings", {})
     fl = summary.get("floor", {})
     floor = summary.get("cd_floor_cm")
-    lines += ["", f"CD floor (two independent samplings of the true surface, "
+    surface = ("two halves of the accumulated reference" if real
+               else "two independent samplings of the true surface")
+    lines += ["", f"CD floor ({surface}, "
                   f"{fl.get('n_pred', '?')} estimated points, method "
                   f"{'/'.join(fl.get('methods', [])) or '?'}): "
                   f"{'n/a' if floor is None else f'{floor:.2f}'} cm.",
@@ -155,7 +258,60 @@ def metrics_markdown(summary: dict[str, Any]) -> str:
                      + "; ".join(flips) + ". A flip costs a nearly symmetric car little CD but "
                      "a large rotation error; over few tracks one flipped track can dominate "
                      "the mean.")
+    if real:
+        lines += _real_notes(s, methods)
+        for stat in ("median", "mean"):
+            for kind, title in BREAKDOWN_TITLES.items():
+                if kind in summary.get("breakdown", {}):
+                    lines += ["", f"### {title} ({stat}s)", ""]
+                    lines += breakdown_markdown(summary["breakdown"][kind], methods, stat)
     return "\n".join(lines) + "\n"
+
+
+def _real_notes(settings: dict[str, Any], methods: list[str]) -> list[str]:
+    n_ref = settings.get("n_reference_tracks", "?")
+    return [f"- Real data: CD and EMD are against each track's accumulated reference (its "
+            f"points of all frames in the box frame, mirrored and cleaned: not a true surface), "
+            f"on the {n_ref} of {settings.get('n_tracks', '?')} tracks that have one; pose and "
+            f"extent errors are against the annotated boxes on every track.",
+            "- Columns below (medians, then the same tables as means; cm, deg): centre = planar centre error; "
+            "radial = signed error along the line of sight (+: estimate too far); |tang| = "
+            "absolute error across it; yaw w/o flips = over frames without a 180-degree flip; "
+            "yaw mod 180 = ignoring the direction of travel; flips = share of frames flipped; "
+            "length, width = signed extent errors (estimate - box), |.| absolute; "
+            "CD vs reference."]
+
+
+BREAKDOWN_TITLES = {"all": "All frames",
+                    "class_group": "Cars vs larger vehicles",
+                    "class": "By class", "distance": "By distance from the sensor",
+                    "points": "By points per frame"}
+_BD_COLUMNS = (("frames", "n_frames", None), ("centre", "centre_cm", 1),
+               ("radial", "radial_cm", 1), ("\\|tang\\|", "tangential_abs_cm", 1),
+               ("yaw", "rot_deg", 1), ("yaw w/o flips", "rot_deg_without_flips", 1),
+               ("yaw mod 180", "rot_axis_deg", 1), ("flips %", "flip_pct", None),
+               ("length", "length_err_cm", 1), ("\\|length\\|", "length_abs_cm", 1),
+               ("width", "width_err_cm", 1), ("\\|width\\|", "width_abs_cm", 1),
+               ("CD vs ref.", "cd_cm", 2))
+
+
+def breakdown_markdown(groups: dict[str, dict[str, dict[str, Any]]], methods: list[str],
+                       stat: str = "median") -> list[str]:
+    """Markdown table lines of one breakdown: a row per group and method."""
+    lines = ["| group | method | " + " | ".join(c[0] for c in _BD_COLUMNS) + " |",
+             "|" + "---|" * (len(_BD_COLUMNS) + 2)]
+    for g, per_method in groups.items():
+        for m in methods:
+            st = per_method.get(m)
+            if st is None:
+                continue
+            cells = []
+            for _, key, digits in _BD_COLUMNS:
+                v = st.get(key) if key in ("n_frames", "flip_pct") else st.get(f"{key}_{stat}")
+                cells.append("n/a" if v is None else str(v) if digits is None and
+                             isinstance(v, int) else f"{v:.{digits or 1}f}")
+            lines.append(f"| {g} | {m} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _flip_text(method: str, d: dict[str, Any]) -> str:

@@ -16,7 +16,16 @@ What is computed, per method and per scored frame ``t`` of a track:
   taken into its canonical frame with its own estimated pose and placed at the true pose; set
   beside ``cd_m`` it splits the error between shape and placement;
 * ``n_det``: detections so far (frames with >= 1 point up to and including t), ``n_points``:
-  points in frame t, ``distance_m``: planar distance of the true box centre from the sensor.
+  points in frame t, ``distance_m``: planar distance of the true box centre from the sensor;
+* ``class``: the track's vehicle class (``meta["class"]``, real tracks; empty when unknown);
+* ``radial_m``, ``tangential_m``: the planar translation error ``(x, y)_est - (x, y)_true``
+  split along the unit vector from the sensor to the true centre (signed: positive = the
+  estimate is too far from the sensor) and along its left-hand normal (signed, counter-clockwise
+  positive); ``trans_m**2 == radial_m**2 + tangential_m**2``;
+* ``rot_axis_rad``: the rotation error ignoring the direction of travel,
+  ``min(rot, pi - rot)`` in ``[0, pi/2]`` (a box flipped by 180 degrees scores 0);
+* ``length_err_m``, ``width_err_m``: signed errors (estimate - truth) of the estimate's extents
+  against the true box size (:func:`estimate_extents`).
 
 Frames whose ground-truth pose is unknown (NaN) are fed but get NaN metrics; tracks without a
 complete shape get NaN CD/EMD. Tracks are processed in chunks of ``batch_tracks``: within a
@@ -51,7 +60,12 @@ log = logging.getLogger(__name__)
 
 #: Columns of the per-frame records, in CSV order.
 FIELDS = ("method", "track_id", "frame", "n_det", "n_points", "distance_m",
-          "cd_m", "emd_m", "trans_m", "rot_rad", "cd_true_pose_m")
+          "cd_m", "emd_m", "trans_m", "rot_rad", "cd_true_pose_m", "class", "radial_m",
+          "tangential_m", "rot_axis_rad", "length_err_m", "width_err_m")
+_STR_FIELDS = ("method", "track_id", "class")
+_INT_FIELDS = ("frame", "n_det", "n_points")
+#: Percentiles of the estimated cloud's canonical coordinates taken as its extents.
+EXTENT_PERCENTILES = (1.0, 99.0)
 _EMD_TASK = 16  # pairs per process-pool task
 
 
@@ -178,13 +192,46 @@ class _Collector:
         if self.pool:
             self.pool.shutdown()
         out = {k: np.asarray(v) for k, v in self.rows.items()}
-        for k in FIELDS[2:5]:
-            out[k] = out[k].astype(np.int64)
-        for k in FIELDS[5:]:
-            out[k] = out[k].astype(np.float64)
-        out["method"] = out["method"].astype(str)
-        out["track_id"] = out["track_id"].astype(str)
+        for k in FIELDS:
+            out[k] = out[k].astype(str if k in _STR_FIELDS
+                                   else np.int64 if k in _INT_FIELDS else np.float64)
         return out
+
+
+def estimate_extents(est) -> np.ndarray:
+    """``(length, width)`` of an estimate, metres.
+
+    An estimate carrying a ``size`` (the box fit) gives its box; otherwise the extents of the
+    complete cloud in its own canonical frame (the estimated pose's centre and yaw): the spread
+    between the :data:`EXTENT_PERCENTILES` (1st and 99th) of its canonical x and y, robust to a
+    few stray points. On a box's surface sampled by area, more than 1 % of the points lie on each
+    end face and side, so these percentiles fall on the faces: exact for a box-like cloud.
+    NaN without points or pose.
+    """
+    size = getattr(est, "size", None)
+    if size is not None:
+        return np.asarray(size, dtype=np.float64)[:2]
+    pred = np.asarray(est.complete, dtype=np.float64)
+    if not len(pred) or not np.all(np.isfinite(est.pose)):
+        return np.full(2, np.nan)
+    local = sensor_to_canonical(pred, est.pose)[:, :2]
+    lo, hi = np.percentile(local, EXTENT_PERCENTILES, axis=0)
+    return hi - lo
+
+
+def radial_tangential(pose_pred, pose_gt) -> tuple[float, float]:
+    """The planar translation error split into ``(radial, tangential)`` metres (module doc).
+
+    Radial: along the unit vector from the sensor to the true centre (positive: too far);
+    tangential: along its left-hand normal. NaN when the true centre is at the sensor.
+    """
+    g = np.asarray(pose_gt, dtype=np.float64)[:2]
+    d = np.asarray(pose_pred, dtype=np.float64)[:2] - g
+    r = float(np.hypot(*g))
+    if r == 0.0:
+        return np.nan, np.nan
+    u = g / r
+    return float(d @ u), float(d @ np.array([-u[1], u[0]]))
 
 
 def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int, est,
@@ -192,6 +239,8 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
     gt_pose = track.poses[t]
     known = bool(np.all(np.isfinite(gt_pose)))
     trans, rot = pose_errors(est.pose, gt_pose) if known else (np.nan, np.nan)
+    radial, tangential = radial_tangential(est.pose, gt_pose) if known else (np.nan, np.nan)
+    length_err, width_err = estimate_extents(est) - track.size[:2]
     cd = cd_tp = np.nan
     gt = None
     pred = np.asarray(est.complete)
@@ -203,7 +252,10 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
                 canonical_to_sensor(sensor_to_canonical(pred, est.pose), gt_pose), gt)
     row = col.add(method=method, track_id=track.track_id, frame=t, n_det=n_det,
                   n_points=len(track.points[t]), distance_m=float(np.hypot(*gt_pose[:2])),
-                  cd_m=cd, emd_m=np.nan, trans_m=trans, rot_rad=rot, cd_true_pose_m=cd_tp)
+                  cd_m=cd, emd_m=np.nan, trans_m=trans, rot_rad=rot, cd_true_pose_m=cd_tp,
+                  **{"class": str(track.meta.get("class") or "")}, radial_m=radial,
+                  tangential_m=tangential, rot_axis_rad=min(rot, np.pi - rot),
+                  length_err_m=length_err, width_err_m=width_err)
     if do_emd and gt is not None:
         col.add_emd(row, subsample_pair(pred, gt, emd_points, stable_seed(track.track_id, t)))
 
@@ -249,6 +301,11 @@ def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int) -> li
             value, how = cd_floor(tr.complete, k, stable_seed(seed, tr.track_id), resample)
             out.append((tr.track_id, value, k, how))
     return out
+
+
+def is_real(tracks: Sequence[Track]) -> bool:
+    """Whether any track comes from a real log (``meta["source"] == "real"``)."""
+    return any(tr.meta.get("source") == "real" for tr in tracks)
 
 
 def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
@@ -308,5 +365,6 @@ def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
               "method": np.array([f[3] for f in fl], dtype=str)}
     settings = dict(n_tracks=len(tracks), emd_points=emd_points, emd_every=emd_every,
                     floor=floor, seed=seed, methods=list(estimators),
-                    n_pred_points=k_of)
+                    n_pred_points=k_of, real=is_real(tracks),
+                    n_reference_tracks=sum(tr.complete is not None for tr in tracks))
     return EvalResult(records, floors, settings)

@@ -3,6 +3,11 @@
 Writes into ``--out``: ``metrics.json``, ``metrics.md`` (ours beside the paper's Table I),
 ``per_frame.csv``, ``errors_vs_detections.png``, ``errors_vs_distance.png`` and
 ``track_view.html`` (interactive 3D view of one track). See docs/evaluation.md.
+
+Real Track datasets (``seqshape tracks``; their tracks' meta say ``source: "real"``) are
+evaluated the same way, with the classical box fit (:class:`seqshape.model.boxfit
+.BoxFitEstimator`) as a third row by default and the breakdowns by class, distance and points
+per frame in the reports.
 """
 
 from __future__ import annotations
@@ -14,7 +19,7 @@ from pathlib import Path
 
 from seqshape.errors import ConfigError
 
-HELP = "evaluate shape and pose estimates on a dataset's val split"
+HELP = "evaluate shape and pose estimates on a dataset's val split (or a real dataset)"
 log = logging.getLogger(__name__)
 
 
@@ -26,7 +31,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baseline", default="pretrained",
                         help="per-frame baseline: a path or 'pretrained' (default)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
-    parser.add_argument("--split", default="val", help="split to evaluate (default: val)")
+    parser.add_argument("--split", default="auto",
+                        help="split to evaluate: a split name, 'all', or 'auto' (default: 'val' "
+                             "when the dataset has one, else all tracks)")
+    parser.add_argument("--boxfit", action=argparse.BooleanOptionalAction, default=None,
+                        help="add the classical box fit as a third method (default: on for "
+                             "real datasets, off for synthetic ones)")
+    parser.add_argument("--boxfit-method", choices=("lshape", "min_area_rect"),
+                        default="lshape",
+                        help="box fit: L-shape fit (Zhang et al. 2017, default) or cv2 "
+                             "minimum-area rectangle")
     parser.add_argument("--max-tracks", type=int, default=None, help="first N tracks only")
     parser.add_argument("--emd-every", type=int, default=1,
                         help="EMD on every K-th frame of each track (0: no EMD; default 1)")
@@ -53,6 +67,28 @@ def load_estimator(spec: str, kind: str):
         flag = "--baseline" if kind == "sequential" else "--checkpoint"
         raise ConfigError(f"{spec} holds a {other} model, not a {kind} one; pass it with {flag}")
     return est
+
+
+def select_split(dataset, name: str):
+    """The tracks to evaluate: split ``name``, ``"all"``, or ``"auto"`` ("val" when any track
+    is in it, else every track: real datasets may have one split or none)."""
+    from seqshape.data import TrackDataset
+
+    if name == "auto":
+        if any(e.get("split") == "val" for e in dataset.entries):
+            return dataset.split("val")
+        log.info("%s has no 'val' split: evaluating all %d tracks", dataset.path, len(dataset))
+        name = "all"
+    if name == "all":
+        if not dataset.entries:
+            raise ConfigError(f"{dataset.path}: the dataset has no tracks")
+        return TrackDataset(dataset.path, _entries=list(dataset.entries))
+    return dataset.split(name)
+
+
+def dataset_is_real(dataset) -> bool:
+    """Whether the dataset's first track comes from a real log (``meta["source"]``)."""
+    return len(dataset) > 0 and dataset[0].meta.get("source") == "real"
 
 
 def choose_view_track(dataset, spec: str, max_tracks: int | None):
@@ -100,9 +136,16 @@ def run(args: argparse.Namespace) -> int:
 
     if args.max_tracks is not None and args.max_tracks < 1:
         raise ConfigError("--max-tracks must be >= 1")
-    dataset = TrackDataset(args.data).split(args.split)
+    dataset = select_split(TrackDataset(args.data), args.split)
     estimators = {"sequential": load_estimator(args.checkpoint, "sequential"),
                   "baseline": load_estimator(args.baseline, "baseline")}
+    use_boxfit = dataset_is_real(dataset) if args.boxfit is None else args.boxfit
+    if use_boxfit:
+        from seqshape.model.boxfit import BoxFitEstimator
+
+        k = estimators["sequential"].config.num_complete
+        estimators["boxfit"] = BoxFitEstimator(method=args.boxfit_method, num_complete=k,
+                                               seed=args.seed)
     summary = evaluate_to(args.out, dataset, estimators, args.max_tracks, args.emd_every,
                           args.emd_points, args.workers, args.batch_tracks, args.floor,
                           args.view, args.seed)
