@@ -38,6 +38,14 @@ def left_side_track():
     return Track("t0", frames, poses, None, SIZE, np.arange(5) / 10.0)
 
 
+def test_core_lives_in_the_data_layer():
+    from seqshape.amodal import accumulate
+    from seqshape.data import reference
+
+    for name in ("accumulate_canonical", "mirror_y", "voxel_downsample", "VOXEL", "BOX_MARGIN"):
+        assert getattr(accumulate, name) is getattr(reference, name)
+
+
 def test_mirror_y():
     p = np.array([[1.0, 2.0, 3.0]])
     assert mirror_y(p).tolist() == [[1.0, -2.0, 3.0]]

@@ -7,6 +7,10 @@ symmetric). The result, thinned on a voxel grid so its density is even, is then 
 every frame with that frame's pose (``canonical_to_sensor``). Frames whose pose is unknown
 (NaN) get an empty cloud.
 
+The accumulation in the canonical frame, the mirroring and the voxel thinning live in the data
+layer (:mod:`seqshape.data.reference`, which also makes the cleaned, resampled reference shapes
+of real tracks); they are re-exported here under their old names.
+
 :func:`export_tracks` writes KITTI tracks as a :class:`~seqshape.data.TrackDataset` whose
 ``complete`` shape is this mirrored accumulation, so ``seqshape train --data DIR`` can fine-tune
 the sequential model on the very data to be labelled, as the paper does for SC-GT.
@@ -21,61 +25,20 @@ from pathlib import Path
 
 import numpy as np
 
+from seqshape.data.reference import (
+    BOX_MARGIN,
+    VOXEL,
+    accumulate_canonical,
+    mirror_y,
+    voxel_downsample,
+)
 from seqshape.data.track import Track
-from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+from seqshape.geometry import canonical_to_sensor
+
+__all__ = ["BOX_MARGIN", "VOXEL", "accumulate_canonical", "export_tracks",
+           "gt_accumulation_clouds", "mirror_y", "place_in_frames", "voxel_downsample"]
 
 log = logging.getLogger(__name__)
-
-VOXEL = 0.05  # m: default grid of the accumulated cloud
-BOX_MARGIN = 0.10  # m: accumulated points farther than this outside the box are dropped
-
-
-def mirror_y(points) -> np.ndarray:
-    """Reflect canonical points about the heading (x) axis: ``(x, y, z) -> (x, -y, z)``."""
-    out = np.array(points, dtype=np.float32, copy=True).reshape(-1, 3)
-    out[:, 1] *= -1
-    return out
-
-
-def voxel_downsample(points, voxel: float) -> np.ndarray:
-    """One point per occupied ``voxel`` cell (the mean of its points); ``(M, 3)`` float32."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    if voxel <= 0 or len(points) == 0:
-        return points.astype(np.float32)
-    keys = np.floor(points / voxel).astype(np.int64)
-    keys -= keys.min(0)
-    dims = keys.max(0) + 1
-    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inv.reshape(-1), points)
-    return (sums / counts[:, None]).astype(np.float32)
-
-
-def accumulate_canonical(track: Track, mirror: bool = True, voxel: float = VOXEL,
-                         box_margin: float | None = BOX_MARGIN) -> np.ndarray:
-    """All of ``track``'s points in its canonical frame, ``(M, 3)`` float32.
-
-    Args:
-        track: points per frame in the sensor frame and ground-truth ``poses``; frames with a
-            NaN pose are skipped.
-        mirror: add the reflection about the heading axis (:func:`mirror_y`).
-        voxel: thinning grid in metres (0 keeps every point).
-        box_margin: drop points farther than this outside the ``track.size`` box (None keeps
-            all); cropping was already done with a margin, this removes what leaked in.
-    """
-    parts = [sensor_to_canonical(p, pose) for p, pose in zip(track.points, track.poses,
-                                                               strict=True)
-             if len(p) and np.all(np.isfinite(pose))]
-    if not parts:
-        return np.zeros((0, 3), np.float32)
-    pts = np.concatenate(parts).astype(np.float32)
-    if box_margin is not None and np.all(np.asarray(track.size) > 0):
-        half = np.asarray(track.size) / 2 + box_margin
-        pts = pts[np.all(np.abs(pts) <= half, axis=1)]
-    if mirror:
-        pts = np.concatenate([pts, mirror_y(pts)])
-    return voxel_downsample(pts, voxel)
 
 
 def place_in_frames(canonical, poses) -> list[np.ndarray]:
