@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from _shapes import box_surface as _box_surface  # noqa: I001
 
-from seqshape.data import Track, write_dataset
+from seqshape.data import Track, TrackDataset, write_dataset
 from seqshape.evaluation.metrics import chamfer_distance, earth_movers_distance
 from seqshape.evaluation.runner import FIELDS, detection_span, evaluate_tracks, predict_track
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
@@ -473,3 +473,19 @@ def test_evaluate_cli_on_a_real_like_dataset(tmp_path):
     assert rc == 0
     assert json.loads((out / "metrics.json").read_text())["settings"]["methods"] == [
         "sequential", "baseline"]
+
+
+def test_one_way_reference_to_estimate_distance_by_brute_force(dataset):
+    """ref_to_est_m is the reference->estimate half of the CD, checked against cdist."""
+    from scipy.spatial.distance import cdist
+
+    tr = TrackDataset(dataset.path).split("val")[0]
+    est = OracleEstimator([tr], pose_noise=0.05, seed=3)
+    res = evaluate_tracks({"sequential": est}, [tr], emd_every=0, workers=0)
+    rec = res.records
+    again = OracleEstimator([tr], pose_noise=0.05, seed=3)
+    frames, estimates = predict_track(again, tr)
+    for i, t in enumerate(frames):
+        d = cdist(tr.complete_in_frame(t), estimates[i].complete)
+        assert rec["ref_to_est_m"][i] == pytest.approx(d.min(1).mean(), rel=1e-9)
+        assert rec["cd_m"][i] == pytest.approx(d.min(1).mean() + d.min(0).mean(), rel=1e-9)

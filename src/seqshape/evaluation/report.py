@@ -53,8 +53,15 @@ METRICS = {"cd_cm": ("cd_m", 100.0), "emd_m": ("emd_m", 1.0),
 LABELS = {"cd_cm": "CD (cm)", "emd_m": "EMD (m)", "trans_cm": "Translation (cm)",
           "rot_deg": "Rotation (deg)"}
 #: Diagnostics beyond Table I, summarised the same way (not plotted).
-EXTRA_METRICS = {"shape_cd_cm": ("cd_true_pose_m", 100.0)}
-EXTRA_LABELS = {"shape_cd_cm": "shape CD at the true pose (cm)"}
+EXTRA_METRICS = {"shape_cd_cm": ("cd_true_pose_m", 100.0),
+                 "ref_to_est_cm": ("ref_to_est_m", 100.0)}
+EXTRA_LABELS = {"shape_cd_cm": "shape CD at the true pose (cm)",
+                "ref_to_est_cm": "reference to estimate, one-way (cm)"}
+EXTRA_NOTES = {"shape_cd_cm": "the estimated shape alone, placed at the true pose; CD minus this "
+                              "is the cost of the estimated placement",
+               "ref_to_est_cm": "mean distance from each reference point to the estimate: the "
+                                "half of the CD that an accumulated reference, which lacks the "
+                                "unseen sides, can judge"}
 REAL_CD_LABEL = "CD vs accumulated reference (cm)"
 #: A rotation error above this (degrees) counts as a 180-degree flip: the box faces backwards.
 FLIP_DEG = 150.0
@@ -70,7 +77,8 @@ POSE_EXTENT_METRICS = {
 #: Statistics of each breakdown group (medians and means): key -> (column, scale, absolute).
 BREAKDOWN_STATS = {"centre_cm": ("trans_m", 100.0, False), **POSE_EXTENT_METRICS,
                    "rot_deg": ("rot_rad", 180.0 / math.pi, False),
-                   "cd_cm": ("cd_m", 100.0, False)}
+                   "cd_cm": ("cd_m", 100.0, False),
+                   "ref_to_est_cm": ("ref_to_est_m", 100.0, False)}
 LARGER = ("van", "truck", "bus", "trailer")
 #: Distance bins (m, lower edges; the last is open) and points-per-frame bins (lower edges).
 DISTANCE_BINS = (0.0, 10.0, 20.0, 30.0, 50.0)
@@ -94,6 +102,8 @@ def method_summary(rec: dict[str, np.ndarray]) -> tuple[dict[str, float | None],
                           "n_tracks": int(len(np.unique(rec["track_id"])))}
     tracks = rec["track_id"]
     for key, (col, scale) in {**METRICS, **EXTRA_METRICS}.items():
+        if key in EXTRA_METRICS and col not in rec:  # records of an older version
+            continue
         v = rec[col] * scale
         (table if key in METRICS else details)[key] = _mean(v)
         details[f"{key}_median"] = _median(v)
@@ -248,9 +258,8 @@ def metrics_markdown(summary: dict[str, Any]) -> str:
         vals = [f"{m} {_fmt(det[m][key], key)}" for m in methods
                 if det.get(m, {}).get(key) is not None]
         if vals:
-            lines.append(f"- Diagnostic, {label}: " + ", ".join(vals) + " (the estimated "
-                         "shape alone, placed at the true pose; CD minus this is the cost of "
-                         "the estimated placement).")
+            lines.append(f"- Diagnostic, {label}: " + ", ".join(vals)
+                         + f" ({EXTRA_NOTES[key]}).")
     flips = [_flip_text(m, summary["details"][m]) for m in methods
              if "rot_flip_frames" in summary.get("details", {}).get(m, {})]
     if flips:

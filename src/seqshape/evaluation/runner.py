@@ -15,6 +15,10 @@ What is computed, per method and per scored frame ``t`` of a track:
 * ``cd_true_pose_m`` (a diagnostic, not in the paper): the CD of the estimated shape alone,
   taken into its canonical frame with its own estimated pose and placed at the true pose; set
   beside ``cd_m`` it splits the error between shape and placement;
+* ``ref_to_est_m``: the one-way half of the CD, mean over the reference points of the distance
+  to the nearest estimated point. Against an accumulated reference (real tracks), which holds
+  only surface the sensor saw, this is the part of the CD that measures the estimate; the
+  other half also charges the estimate for the sides the reference lacks (docs/reference.md);
 * ``n_det``: detections so far (frames with >= 1 point up to and including t), ``n_points``:
   points in frame t, ``distance_m``: planar distance of the true box centre from the sensor;
 * ``class``: the track's vehicle class (``meta["class"]``, real tracks; empty when unknown);
@@ -48,8 +52,8 @@ from seqshape.data import Track
 from seqshape.errors import ConfigError, SeqshapeError
 from seqshape.evaluation.metrics import (
     cd_floor,
-    chamfer_distance,
     emd_batch,
+    nearest_distances,
     pose_errors,
     stable_seed,
     subsample_pair,
@@ -61,7 +65,7 @@ log = logging.getLogger(__name__)
 #: Columns of the per-frame records, in CSV order.
 FIELDS = ("method", "track_id", "frame", "n_det", "n_points", "distance_m",
           "cd_m", "emd_m", "trans_m", "rot_rad", "cd_true_pose_m", "class", "radial_m",
-          "tangential_m", "rot_axis_rad", "length_err_m", "width_err_m")
+          "tangential_m", "rot_axis_rad", "length_err_m", "width_err_m", "ref_to_est_m")
 _STR_FIELDS = ("method", "track_id", "class")
 _INT_FIELDS = ("frame", "n_det", "n_points")
 #: Percentiles of the estimated cloud's canonical coordinates taken as its extents.
@@ -234,6 +238,10 @@ def radial_tangential(pose_pred, pose_gt) -> tuple[float, float]:
     return float(d @ u), float(d @ np.array([-u[1], u[0]]))
 
 
+def _chamfer(a: np.ndarray, b: np.ndarray) -> float:
+    return float(nearest_distances(a, b).mean() + nearest_distances(b, a).mean())
+
+
 def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int, est,
                  emd_points: int, do_emd: bool) -> None:
     gt_pose = track.poses[t]
@@ -241,21 +249,22 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
     trans, rot = pose_errors(est.pose, gt_pose) if known else (np.nan, np.nan)
     radial, tangential = radial_tangential(est.pose, gt_pose) if known else (np.nan, np.nan)
     length_err, width_err = estimate_extents(est) - track.size[:2]
-    cd = cd_tp = np.nan
+    cd = cd_tp = ref_to_est = np.nan
     gt = None
     pred = np.asarray(est.complete)
     if known and track.complete is not None and len(pred):
         gt = track.complete_in_frame(t)
-        cd = chamfer_distance(pred, gt)
+        ref_to_est = float(nearest_distances(gt, pred).mean())
+        cd = float(nearest_distances(pred, gt).mean()) + ref_to_est  # = chamfer_distance
         if np.all(np.isfinite(est.pose)):
-            cd_tp = chamfer_distance(
+            cd_tp = _chamfer(
                 canonical_to_sensor(sensor_to_canonical(pred, est.pose), gt_pose), gt)
     row = col.add(method=method, track_id=track.track_id, frame=t, n_det=n_det,
                   n_points=len(track.points[t]), distance_m=float(np.hypot(*gt_pose[:2])),
                   cd_m=cd, emd_m=np.nan, trans_m=trans, rot_rad=rot, cd_true_pose_m=cd_tp,
                   **{"class": str(track.meta.get("class") or "")}, radial_m=radial,
                   tangential_m=tangential, rot_axis_rad=min(rot, np.pi - rot),
-                  length_err_m=length_err, width_err_m=width_err)
+                  length_err_m=length_err, width_err_m=width_err, ref_to_est_m=ref_to_est)
     if do_emd and gt is not None:
         col.add_emd(row, subsample_pair(pred, gt, emd_points, stable_seed(track.track_id, t)))
 
