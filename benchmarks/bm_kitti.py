@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 from _bench import bench_parser, print_table, time_it
 
-from seqshape.amodal.kins import mask_to_rle, rle_to_mask
+from seqshape.amodal.kins import mask_to_polygons, mask_to_rle, rle_to_mask, segm_to_mask
 from seqshape.camera import kitti_default_calib, project_points
+from seqshape.data.crop import crop_vehicle
 from seqshape.data.kitti import crop_box, read_velodyne, write_velodyne
 
 
@@ -36,8 +37,13 @@ def main():
             ("write_velodyne (120k pts)", lambda: write_velodyne(path, scan)),
             ("project_points (120k pts)", lambda: project_points(scan[:, :3], calib)),
             ("crop_box (120k pts, 1 box)", lambda: crop_box(scan, pose, size)),
+            ("crop_vehicle (120k pts, 1 box, ground plane)",
+             lambda: crop_vehicle(scan, pose, size)),
             ("mask_to_rle (1242x375)", lambda: mask_to_rle(mask)),
             ("rle_to_mask (1242x375)", lambda: rle_to_mask(mask_to_rle(mask))),
+            ("mask_to_polygons (1242x375)", lambda: mask_to_polygons(mask)),
+            ("polygons -> mask (1242x375)",
+             lambda: segm_to_mask(mask_to_polygons(mask), 375, 1242)),
         ]
         table = []
         for name, fn in rows:

@@ -86,7 +86,7 @@ def oracle_labels(root: Path, sequence: str, cfg: LabelConfig, max_frames: int |
     seq = open_sequence(root, sequence, max_frames)
     scene, _ = load_scene(root, sequence)
     by_tid = {a.track_id: k for k, a in enumerate(scene.agents)}
-    _, inputs = gt_track_inputs(seq, cfg.types)
+    _, inputs = gt_track_inputs(seq, cfg.classes, cfg.crop)
     clouds = []
     for inp in inputs:
         shape = sample_outer_surface(scene.mesh(by_tid[inp.label_id]), n=4096, seed=0)

@@ -6,11 +6,13 @@ import pytest
 
 from seqshape.amodal.kins import (
     KINS_CATEGORIES,
+    annotation_mask,
     annotations_by_image,
     bbox_of_mask,
     coco_annotation,
     image_entry,
     kins_annotation,
+    mask_to_polygons,
     mask_to_rle,
     occlusion_order,
     read_coco_instances,
@@ -63,10 +65,84 @@ def test_occlusion_order_clusters_and_ranks():
              _rect(h, w, 30, 0, 35, 5)]    # D: alone
     depths = [12.0, 8.0, 20.0, 5.0]
     oco, ico = occlusion_order(depths, masks)
-    # D (5 m) is the nearest -> cluster 1; {A, B, C} cluster 2 ordered B (8), A (12), C (20)
-    assert oco == [2, 2, 2, 1]
-    assert ico == [2, 1, 3, 1]
+    # D overlaps nobody: 0, 0 although it is the nearest. {A, B, C} is cluster 1: B (8 m) is
+    # hidden by nobody (1); A and C are each hidden by B only (2), they do not touch
+    assert oco == [1, 1, 1, 0]
+    assert ico == [2, 1, 2, 0]
     assert occlusion_order([], []) == ([], [])
+
+
+def test_occlusion_order_isolated_instance_is_zero():
+    assert occlusion_order([7.0], [_rect(10, 10, 2, 2, 5, 5)]) == ([0], [0])
+    # two instances that do not touch (adjacent pixels are not an overlap)
+    oco, ico = occlusion_order([3.0, 4.0], [_rect(10, 10, 0, 0, 5, 5),
+                                            _rect(10, 10, 5, 0, 9, 5)])
+    assert (oco, ico) == ([0, 0], [0, 0])
+
+
+def test_occlusion_order_chain_rises_by_one_per_occlusion():
+    h, w = 10, 40
+    a, b, c = _rect(h, w, 0, 0, 10, 8), _rect(h, w, 8, 0, 20, 8), _rect(h, w, 18, 0, 30, 8)
+    # A (front) hides B, B hides C; A and C do not touch. Given in shuffled order.
+    oco, ico = occlusion_order([30.0, 10.0, 20.0], [c, a, b])
+    assert oco == [1, 1, 1] and ico == [3, 1, 2]
+    # C also reaching under A changes nothing: C is still hidden by B (order 2) -> 3
+    c2 = _rect(h, w, 5, 0, 30, 3)
+    assert occlusion_order([10.0, 20.0, 30.0], [a, b, c2]) == ([1, 1, 1], [1, 2, 3])
+
+
+def test_occlusion_order_two_clusters_front_first():
+    h, w = 10, 60
+    far = [_rect(h, w, 0, 0, 10, 8), _rect(h, w, 5, 0, 15, 8)]       # 30 m and 40 m
+    near = [_rect(h, w, 40, 0, 50, 8), _rect(h, w, 45, 0, 55, 8)]    # 10 m and 12 m
+    alone = _rect(h, w, 25, 0, 30, 8)                                 # 5 m, touches nobody
+    oco, ico = occlusion_order([30.0, 40.0, 12.0, 10.0, 5.0], far + near[::-1] + [alone])
+    assert oco == [2, 2, 1, 1, 0] and ico == [1, 2, 2, 1, 0]
+
+
+def test_mask_to_polygons_round_trip():
+    import cv2
+
+    h, w = 60, 80
+    mask = np.zeros((h, w), np.uint8)
+    cv2.circle(mask, (40, 30), 15, 1, -1)
+    cv2.fillConvexPoly(mask, np.array([[2, 50], [20, 44], [30, 58]], np.int32), 1)
+    mask = mask.astype(bool)
+    mask[5:8, 5:20] = True   # a thin bar
+    mask[50, 70] = True      # a single pixel
+    polys = mask_to_polygons(mask)
+    assert len(polys) == 4 and all(len(p) >= 6 and len(p) % 2 == 0 for p in polys)
+    json.dumps(polys)
+    back = segm_to_mask(polys, h, w)
+    iou = (back & mask).sum() / (back | mask).sum()
+    assert iou > 0.97
+    # holes: polygons are the outer contours, so a ring comes back filled
+    ring = _rect(h, w, 10, 10, 30, 30) & ~_rect(h, w, 15, 15, 25, 25)
+    np.testing.assert_array_equal(segm_to_mask(mask_to_polygons(ring), h, w),
+                                  _rect(h, w, 10, 10, 30, 30))
+    assert mask_to_polygons(np.zeros((4, 4), bool)) == []
+
+
+def test_kins_polygons_read_and_scored(tmp_path):
+    from seqshape.amodal.evaluate import evaluate_files
+
+    images, anns, (a0, v0, a1, v1) = _scene()
+    write_kins(tmp_path / "rle.json", images, anns)
+    poly = [kins_annotation(a["id"], a["image_id"], a["category_id"],
+                            rle_to_mask(a["a_segm"]), rle_to_mask(a["i_segm"]),
+                            a["oco_id"], a["ico_id"], polygons=True) for a in anns]
+    assert isinstance(poly[1]["a_segm"], list) and poly[1]["a_area"] == a1.sum()
+    write_kins(tmp_path / "poly.json", images, poly)
+    doc = read_kins(tmp_path / "poly.json")
+    np.testing.assert_array_equal(annotation_mask(doc["annotations"][1], "a_segm",
+                                                  doc["images"][0]), a1)
+    np.testing.assert_array_equal(annotation_mask(doc["annotations"][1], "i_segm",
+                                                  doc["images"][0]), v1)
+    # polygons scored against RLE: every instance matched with IoU 1
+    for segm in ("a_segm", "i_segm"):
+        results, unmatched = evaluate_files([(tmp_path / "poly.json", tmp_path / "rle.json")],
+                                            segm=segm)
+        assert unmatched == 0 and [r.iou for r in results] == [1.0, 1.0, 1.0]
 
 
 def _scene():
@@ -155,3 +231,26 @@ def test_docstring_examples():
 
     result = doctest.testmod(mod)
     assert result.attempted > 0 and result.failed == 0
+
+
+def test_occlusion_order_exact_relation_overrides_depth():
+    h, w = 10, 40
+    long_, short = _rect(h, w, 0, 0, 30, 8), _rect(h, w, 20, 0, 36, 8)
+    # a long vehicle whose nearest point is nearer (8 m) although the short one (9 m) covers
+    # part of it: the exact relation puts the short one in front
+    assert occlusion_order([8.0, 9.0], [long_, short]) == ([1, 1], [1, 2])
+    hides = np.array([[False, False], [True, False]])
+    assert occlusion_order([8.0, 9.0], [long_, short], hides=hides) == ([1, 1], [2, 1])
+    # a cycle (each covers some of the other) is no order: depth decides
+    both = np.ones((2, 2), bool)
+    assert occlusion_order([8.0, 9.0], [long_, short], hides=both) == ([1, 1], [1, 2])
+    three = [_rect(h, w, 0, 0, 10, 8), _rect(h, w, 8, 0, 20, 8), _rect(h, w, 18, 0, 30, 8)]
+    chain = np.zeros((3, 3), bool)
+    chain[2, 1] = chain[1, 0] = True
+    # C hides B hides A per the relation (reverse of depth): orders 3, 2, 1
+    assert occlusion_order([1.0, 2.0, 3.0], three, hides=chain) == ([1, 1, 1], [3, 2, 1])
+    # a cycle over three mutually overlapping instances: depth alone
+    wide = [_rect(h, w, 0, 0, 20, 8), _rect(h, w, 5, 0, 25, 8), _rect(h, w, 10, 0, 30, 8)]
+    cycle = np.zeros((3, 3), bool)
+    cycle[0, 1] = cycle[1, 2] = cycle[2, 0] = True
+    assert occlusion_order([1.0, 2.0, 3.0], wide, hides=cycle) == ([1, 1, 1], [1, 2, 3])

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from seqshape.camera import KittiCalib, kitti_default_calib, write_calib
+from seqshape.data.crop import CropConfig
 from seqshape.data.kitti import (
     KittiLabel,
     KittiTrackingSequence,
@@ -25,7 +26,8 @@ from seqshape.data.kitti import (
     write_oxts,
     write_velodyne,
 )
-from seqshape.errors import DataError
+from seqshape.data.sequence import DrivingLog, open_log
+from seqshape.errors import ConfigError, DataError
 from seqshape.geometry import (
     canonical_to_sensor,
     points_in_box,
@@ -310,14 +312,61 @@ def test_extract_tracks_returns_exactly_the_box_points(tmp_path, calib):
         assert got_ego.shape == (len(frames), 4, 4)
         if np.allclose(calib.Tr_imu_velo, np.eye(4)[:3]):
             np.testing.assert_allclose(got_ego, ego[frames], atol=1e-6)
-    # ground kept when asked, the pedestrian on request, and the min_points filter
-    with_ground = extract_tracks(seq, remove_ground=False)
+    # generic meta schema beside the KITTI keys
+    assert out[1].meta["dataset"] == "kitti" and out[1].meta["class"] == "van"
+    assert out[1].meta["object_id"] == "0005" and out[1].meta["category"] == "Van"
+    # ground kept when asked; only vehicles (a pedestrian is no vehicle class any more); and
+    # the min_points filter
+    with_ground = extract_tracks(seq, crop=CropConfig(ground="none"))
     assert all(len(a) >= len(b) + 20 for t0, t1 in zip(out, with_ground, strict=True)
                for a, b in zip(t1.points, t0.points, strict=True))
-    assert [t.meta["type"] for t in extract_tracks(seq, types=("Pedestrian",))] == ["Pedestrian"]
+    assert [t.meta["type"] for t in extract_tracks(seq, types=("Van",))] == ["Van"]
+    with pytest.raises(ConfigError, match="Pedestrian"):
+        extract_tracks(seq, types=("Pedestrian",))
     # car: 42, 52, 62 points per frame; van: 22, 42
     assert extract_tracks(seq, min_points=63) == []
     assert [t.track_id for t in extract_tracks(seq, min_points=43)] == ["0005_0002"]
+
+
+def test_kitti_sequence_is_a_driving_log(tmp_path):
+    calib = kitti_default_calib()
+    tracks, expected, ego = _build_sequence(tmp_path, calib)
+    log = open_log("kitti", tmp_path, "0005")
+    assert isinstance(log, DrivingLog) and isinstance(log, KittiTrackingSequence)
+    assert (log.dataset, log.name, log.sensor, log.frames) == ("kitti", "0005", "hdl64", [0, 1, 2])
+    assert KittiTrackingSequence.log_names(tmp_path) == ["0005"]
+    assert log.timestamp(2) == pytest.approx(0.2)
+    assert log.points(1).shape[1] == 4
+    boxes = log.boxes(1)  # DontCare left out; the van has no box in frame 1
+    assert [(b.track_id, b.category, b.cls) for b in boxes] == [
+        ("0002", "Car", "car"), ("0009", "Pedestrian", None)]
+    car = boxes[0]
+    np.testing.assert_allclose(car.pose[:3], tracks[2][2][1][:3], atol=2e-5)
+    np.testing.assert_allclose(car.size, tracks[2][1], atol=2e-6)
+    assert car.visibility == 0.0 and car.extra["truncated"] == 0
+    assert [b.track_id for b in log.vehicle_boxes(1)] == ["0002"]
+    np.testing.assert_allclose(log.ego_pose(0), np.eye(4), atol=1e-9)
+    assert log.ego_pose(3) is None
+    assert log.camera_names == ("image_02", "image_03") and log.default_camera == "image_02"
+    cam2, cam3 = log.camera(), log.camera("image_03")
+    np.testing.assert_array_equal(cam2.P, calib.P2)
+    np.testing.assert_array_equal(cam3.P, calib.P3)
+    assert log.image_path(4, "image_03") == tmp_path / "image_03" / "0005" / "000004.png"
+    assert log.image_path(4, 3) == log.image_path(4, "image_03")  # former int form
+    assert log.image_file_name(4, "image_02") == "0005/000004.png"
+    with pytest.raises(ConfigError, match="image_01"):
+        log.camera("image_01")
+    # restrict drops the later frames' labels too
+    log.restrict(1)
+    assert log.frames == [0] and set(log.labels_by_frame) == {0}
+
+
+def test_kitti_sequence_without_calib_has_no_cameras(tmp_path):
+    write_velodyne(velodyne_path(tmp_path, 2, 0), np.zeros((3, 4), np.float32))
+    log = KittiTrackingSequence(tmp_path, 2)
+    assert log.camera_names == () and log.default_camera is None
+    with pytest.raises(ConfigError, match="no calibration"):
+        log.camera()
 
 
 def test_image_size_from_png(tmp_path):

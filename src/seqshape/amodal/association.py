@@ -6,7 +6,7 @@ Frame by frame, live tracks are matched to the frame's detections by the Hungari
     cost = |c_pred - c_det| / gate + iou_weight * (1 - IoU(mask_last, mask_det)),
 
 where ``c`` are 3D centroids (the median of the instance's points) in a common frame (the
-sequence's first velodyne frame when ego poses are given, else each frame's sensor frame),
+log's reference frame when ego poses are given, else each frame's sensor frame),
 ``c_pred`` is the track's last centroid extrapolated at constant velocity, and ``mask_last`` the
 track's last 2D mask. Pairs farther apart than ``gate`` metres are forbidden. Unmatched
 detections start new tracks; a track unmatched for more than ``max_age`` frames ends.
@@ -107,24 +107,25 @@ def associate(frames: Sequence[Sequence[Detection]], gate: float = 3.0,
 # ----------------------------------------------------------------------------- sc-seg input
 
 
-def segment_frame(scan, calib, masks, min_depth: float = 1.0, grow: bool = True,
+def segment_frame(scan, camera, masks, min_depth: float = 1.0, grow: bool = True,
                   plane=None, **diffusion_kwargs):
     """Points of each 2D instance of one frame: a list (one per mask) of ``(N_i, 3)`` float32.
 
-    ``scan (N, 3+)`` is the velodyne frame; ground points are removed
+    ``scan (N, 3+)`` is in the sensor frame; ground points are removed
     (:func:`~seqshape.amodal.diffusion.ground_mask`, against ``plane`` when given), the rest
-    projected with camera 2, the
+    projected with ``camera`` (a PinholeCamera of the masks' image), the
     points inside the image labelled by :func:`~seqshape.amodal.diffusion.diffuse_labels`, and
     (``grow``) each instance grown into the connected points outside the image
     (:func:`~seqshape.amodal.diffusion.grow_instances`).
     """
     from seqshape.amodal.diffusion import diffuse_labels, ground_mask, grow_instances
-    from seqshape.camera import in_image, project_points
+    from seqshape.camera import as_camera
 
+    camera = as_camera(camera)
     pts = np.asarray(scan, dtype=np.float64)[:, :3]
     pts = pts[~ground_mask(pts, plane=plane)]
-    uv, depth = project_points(pts, calib)
-    keep = in_image(uv, depth, calib, min_depth=min_depth)
+    uv, depth = camera.project(pts)
+    keep = camera.in_image(uv, depth, min_depth=min_depth)
     labels = diffuse_labels(pts[keep], uv[keep], masks, **diffusion_kwargs)
     parts = [pts[keep][labels == m] for m in range(len(masks))]
     if grow:
@@ -137,7 +138,8 @@ def segment_frame(scan, calib, masks, min_depth: float = 1.0, grow: bool = True,
 def fill_gaps(track, max_gap: int, ego=None):
     """``track`` with every run of at most ``max_gap`` missing frames between two of its
     frames filled by frames without points (their pose comes from the smoothed track:
-    refinement ``"smooth"``); ``ego`` ``(F, 4, 4)`` per sequence frame sets ``track.ego``."""
+    refinement ``"smooth"``); ``ego`` ``{frame: (4, 4)}`` (or an array indexed by frame) sets
+    ``track.ego`` when every frame of the track has one."""
     from seqshape.amodal.refine import TrackInput
 
     frames, points, masks = [], [], []
@@ -152,31 +154,32 @@ def fill_gaps(track, max_gap: int, ego=None):
         masks.append(None if track.masks is None else track.masks[i])
     out = TrackInput(track.track_id, frames, points, None, track.category_id, track.label_id,
                      masks=None if track.masks is None else masks)
-    if ego is not None and frames and max(frames) < len(ego):
-        out.ego = np.asarray(ego, dtype=np.float64)[frames]
+    out.ego = _ego_of(ego, frames)
     return out
 
 
-def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0,
-                     categories=None, max_gap: int = 0, unsupported: dict | None = None) -> list:
-    """sc-seg tracks of a :class:`~seqshape.data.kitti.KittiTrackingSequence`.
+def _ego_of(ego, frames) -> np.ndarray | None:
+    """``(T, 4, 4)`` ego poses of ``frames`` from ``{frame: pose}``, or None if one lacks."""
+    if ego is None or not frames:
+        return None
+    poses = [ego.get(f) if isinstance(ego, dict) else (ego[f] if f < len(ego) else None)
+             for f in frames]
+    if any(p is None for p in poses):
+        return None
+    return np.stack([np.asarray(p, dtype=np.float64) for p in poses])
 
-    Reads the COCO instance masks (``instances_path``; images matched by ``file_name``
-    ``SSSS/FFFFFF.png``), segments every frame (:func:`segment_frame`), drops instances with
-    fewer than ``min_points`` points, associates the rest (:func:`associate`; centroids in the
-    sequence's first velodyne frame via the oxts ego poses when present) and returns a list of
-    :class:`~seqshape.amodal.refine.TrackInput` (no ground-truth poses; ``category_id`` the
-    most frequent category of the track's masks). ``max_gap > 0`` fills the short gaps of
-    each track with empty frames (:func:`fill_gaps`). ``unsupported``: a dict that receives,
-    per frame, the ``(mask, annotation, ground plane)`` of every 2D instance dropped for too
-    few points (:mod:`seqshape.amodal.fallback`).
+
+def instance_masks_by_frame(log, camera: str, instances_path, categories=None
+                            ) -> dict[int, list[dict]]:
+    """``{frame: [COCO annotation, ...]}`` of ``log``'s frames from a COCO instance file.
+
+    Images are matched by ``file_name`` to ``log.image_file_name(frame, camera)`` (KITTI:
+    ``SSSS/FFFFFF.png``); segmentations may be RLE or polygons (read as RLE). ``categories``:
+    keep only these category ids (default all).
     """
     from pathlib import Path
 
-    from seqshape._progress import progress
-    from seqshape.amodal.diffusion import ground_plane
-    from seqshape.amodal.kins import read_coco_instances, rle_to_mask
-    from seqshape.amodal.refine import TrackInput
+    from seqshape.amodal.kins import read_coco_instances
     from seqshape.errors import DataError
 
     instances_path = Path(instances_path)
@@ -189,26 +192,61 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
     for a in doc["annotations"]:
         if categories is None or a["category_id"] in categories:
             anns.setdefault(a["image_id"], []).append(a)
-    ego = seq.ego_poses
-    calib = seq.calib
+    out = {}
+    for frame in log.frames:
+        image_id = by_name.get(log.image_file_name(frame, camera))
+        out[frame] = anns.get(image_id, []) if image_id is not None else []
+    if log.frames and not any(img in by_name for img in
+                              (log.image_file_name(f, camera) for f in log.frames)):
+        import logging
+
+        logging.getLogger(__name__).warning(
+            "%s: no image file_name matches %s (e.g. %r): no 2D instances", instances_path,
+            log.name, log.image_file_name(log.frames[0], camera))
+    return out
+
+
+def segment_sequence(log, instances_path, min_points: int = 5, gate: float = 3.0,
+                     categories=None, max_gap: int = 0, unsupported: dict | None = None,
+                     camera: str | None = None) -> list:
+    """sc-seg tracks of a :class:`~seqshape.data.sequence.DrivingLog` seen by ``camera``
+    (default: the log's default camera).
+
+    Reads the COCO instance masks (``instances_path``; :func:`instance_masks_by_frame`),
+    segments every frame (:func:`segment_frame`), drops instances with
+    fewer than ``min_points`` points, associates the rest (:func:`associate`; centroids in the
+    log's reference frame via its ego poses when it has them) and returns a list of
+    :class:`~seqshape.amodal.refine.TrackInput` (no ground-truth poses; ``category_id`` the
+    most frequent category of the track's masks). ``max_gap > 0`` fills the short gaps of
+    each track with empty frames (:func:`fill_gaps`). ``unsupported``: a dict that receives,
+    per frame, the ``(mask, annotation, ground plane)`` of every 2D instance dropped for too
+    few points (:mod:`seqshape.amodal.fallback`).
+    """
+    from seqshape._progress import progress
+    from seqshape.amodal.diffusion import ground_plane
+    from seqshape.amodal.kins import rle_to_mask
+    from seqshape.amodal.refine import TrackInput
+
+    camera = camera or log.default_camera
+    by_frame = instance_masks_by_frame(log, camera, instances_path, categories)
+    ego = {f: log.ego_pose(f) for f in log.frames}
+    ego = {f: e for f, e in ego.items() if e is not None}
     per_frame, det_points, det_cats, det_rles = [], [], [], []
-    for frame in progress(seq.frames, desc=f"segment {seq.sequence}", unit="frame"):
-        image_id = by_name.get(f"{seq.sequence}/{frame:06d}.png")
-        fa = anns.get(image_id, []) if image_id is not None else []
+    for frame in progress(log.frames, desc=f"segment {log.name}", unit="frame"):
+        fa = by_frame[frame]
         masks = [rle_to_mask(a["segmentation"]) for a in fa]
         plane, parts = None, []
         if masks:
-            scan = np.asarray(seq.velodyne(frame))
+            scan = np.asarray(log.points(frame))
             plane = ground_plane(scan[:, :3])
-            parts = segment_frame(scan, calib, masks, plane=plane)
+            parts = segment_frame(scan, log.camera(camera, frame), masks, plane=plane)
         dets, pts, cats, rles = [], [], [], []
         for m, (a, p) in enumerate(zip(fa, parts, strict=True)):
             if len(p) < min_points:
                 if unsupported is not None:
                     unsupported.setdefault(frame, []).append((masks[m], a, plane))
                 continue
-            pose = None if ego is None or frame >= len(ego) else ego[frame]
-            c = to_common_frame(np.median(p, axis=0), pose)
+            c = to_common_frame(np.median(p, axis=0), ego.get(frame))
             dets.append(Detection(frame, c, masks[m], len(dets)))
             pts.append(p)
             cats.append(int(a["category_id"]))
@@ -223,7 +261,7 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
     for dets, pts, cats, rles, tids in zip(per_frame, det_points, det_cats, det_rles, ids,
                                            strict=True):
         for d, p, c, r, t in zip(dets, pts, cats, rles, tids, strict=True):
-            tr = tracks.setdefault(t, TrackInput(f"{seq.sequence}_seg{t:04d}", [], [], None,
+            tr = tracks.setdefault(t, TrackInput(f"{log.name}_seg{t:04d}", [], [], None,
                                                  4, t, masks=[]))
             tr.frames.append(d.frame)
             tr.points.append(p)
@@ -231,7 +269,6 @@ def segment_sequence(seq, instances_path, min_points: int = 5, gate: float = 3.0
             cat_votes.setdefault(t, []).append(c)
     for t, tr in tracks.items():
         tr.category_id = int(np.bincount(cat_votes[t]).argmax())
-        if ego is not None and max(tr.frames) < len(ego):
-            tr.ego = np.asarray(ego, dtype=np.float64)[tr.frames]
+        tr.ego = _ego_of(ego, tr.frames)
     out = [tracks[t] for t in sorted(tracks)]
     return [fill_gaps(t, max_gap, ego) for t in out] if max_gap > 0 else out

@@ -37,7 +37,7 @@ def amodal_demo_step(work_dir, checkpoint: str | None = "pretrained", seed: int 
     from seqshape.amodal.evaluate import evaluate_files, markdown_table, summarise
     from seqshape.amodal.labeler import (
         LabelConfig,
-        label_sequence,
+        label_log,
         load_estimator,
         write_labels,
         write_overlays,
@@ -62,7 +62,7 @@ def amodal_demo_step(work_dir, checkpoint: str | None = "pretrained", seed: int 
     rows, images = {}, []
     frames = seq.frames[:: max(1, len(seq.frames) // overlay_frames)][:overlay_frames]
     for mode in modes:
-        result = label_sequence(scenes, sequence, LabelConfig(mode=mode), estimator)
+        result = label_log(seq, LabelConfig(mode=mode), estimator=estimator)
         path = work / "labels" / f"{mode}_{sequence}.json"
         write_labels(path, result)
         rows[mode] = summarise(*evaluate_files([(path, scenes / "amodal" / f"{sequence}.json")]))

@@ -205,7 +205,8 @@ def _label_range(lab) -> float:
 
 def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = None,
                    segm: str = "a_segm") -> tuple[list[InstanceResult], int]:
-    """Score KINS label files ``[(pred_path, gt_path), ...]`` (images matched by file name).
+    """Score KINS label files ``[(pred_path, gt_path), ...]`` (images matched by file name;
+    segmentations RLE or polygons).
 
     Reference images missing from the prediction count every instance as missed. Distances come
     from an annotation's ``distance`` key when present, else from the KITTI ``label_02`` file of
@@ -215,7 +216,7 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
     """
     if segm not in ("a_segm", "i_segm"):
         raise ValueError(f"segm must be 'a_segm' or 'i_segm', got {segm!r}")
-    from seqshape.amodal.kins import read_kins, rle_to_mask
+    from seqshape.amodal.kins import annotation_mask, read_kins
 
     results: list[InstanceResult] = []
     unmatched = 0
@@ -227,10 +228,11 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
             return category_ids is None or a["category_id"] in category_ids
 
         pred_by_name = {img["file_name"]: [] for img in pred_doc["images"]}
-        pid_to_name = {img["id"]: img["file_name"] for img in pred_doc["images"]}
+        pid_to_img = {img["id"]: img for img in pred_doc["images"]}
         for a in pred_doc["annotations"]:
             if keep(a):
-                pred_by_name[pid_to_name[a["image_id"]]].append(a)
+                img = pid_to_img[a["image_id"]]
+                pred_by_name[img["file_name"]].append((a, img))
         gt_anns: dict[int, list[dict]] = {img["id"]: [] for img in gt_doc["images"]}
         for a in gt_doc["annotations"]:
             if keep(a):
@@ -242,8 +244,8 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
             dist = [a.get("distance", dists.get((frame, str(a.get("track_id"))), np.nan))
                     for a in anns]
             res, un = evaluate_image(
-                img["id"], [rle_to_mask(a[segm]) for a in preds],
-                [rle_to_mask(a[segm]) for a in anns],
+                img["id"], [annotation_mask(a, segm, pimg) for a, pimg in preds],
+                [annotation_mask(a, segm, img) for a in anns],
                 [a["i_area"] for a in anns] if segm == "a_segm" else None, dist,
                 [a.get("track_id") for a in anns])
             for r, a in zip(res, anns, strict=True):

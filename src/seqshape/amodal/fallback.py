@@ -43,13 +43,14 @@ class FallbackConfig:
     max_width_m: float = 15.0
 
 
-def ground_depth(u: float, v: float, plane: tuple[np.ndarray, float], calib,
-                 cam: int = 2) -> tuple[float, np.ndarray] | None:
-    """Where the ray through pixel ``(u, v)`` meets the ground plane ``n . x + d = 0``
-    (sensor frame): ``(camera depth, point (3,))``, or None if it does not (in front)."""
-    from seqshape.camera import unproject_points
+def ground_depth(u: float, v: float, plane: tuple[np.ndarray, float],
+                 camera) -> tuple[float, np.ndarray] | None:
+    """Where the ray through pixel ``(u, v)`` of ``camera`` (a PinholeCamera) meets the ground
+    plane ``n . x + d = 0`` (sensor frame): ``(camera depth, point (3,))``, or None if it does
+    not (in front)."""
+    from seqshape.camera import as_camera
 
-    a, b = unproject_points([[u, v], [u, v]], [1.0, 2.0], calib, cam=cam)
+    a, b = as_camera(camera).unproject([[u, v], [u, v]], [1.0, 2.0])
     n, d = plane
     denom = float(n @ (b - a))
     if abs(denom) < 1e-12:
@@ -61,10 +62,14 @@ def ground_depth(u: float, v: float, plane: tuple[np.ndarray, float], calib,
 
 
 def mask_instance(track_id: str, mask: np.ndarray, score: float,
-                  plane: tuple[np.ndarray, float], calib,
+                  plane: tuple[np.ndarray, float], camera,
                   cfg: FallbackConfig = FallbackConfig()) -> InstanceMask | None:
     """An :class:`InstanceMask` whose amodal mask is ``mask`` (H, W), at the depth where its
-    bottom edge meets the ground, or None when the mask is not a plausible vehicle."""
+    bottom edge meets the ground (``camera``: a PinholeCamera), or None when the mask is not
+    a plausible vehicle."""
+    from seqshape.camera import as_camera
+
+    camera = as_camera(camera)
     mask = np.asarray(mask, dtype=bool)
     if score < cfg.min_score or not mask.any():
         return None
@@ -73,15 +78,15 @@ def mask_instance(track_id: str, mask: np.ndarray, score: float,
     if bottom >= mask.shape[0] - 1:
         return None
     u = 0.5 * (cols.min() + cols.max())
-    hit = ground_depth(float(u), float(bottom) + 0.5, plane, calib)
+    hit = ground_depth(float(u), float(bottom) + 0.5, plane, camera)
     if hit is None:
         return None
     depth, point = hit
     if float(np.linalg.norm(point[:2])) < cfg.min_distance:
         return None
-    p = calib.P(2)
-    height = (bottom - rows.min() + 1) * depth / p[1, 1]
-    width = (cols.max() - cols.min() + 1) * depth / p[0, 0]
+    k = camera.K
+    height = (bottom - rows.min() + 1) * depth / k[1, 1]
+    width = (cols.max() - cols.min() + 1) * depth / k[0, 0]
     if not cfg.height_m[0] <= height <= cfg.height_m[1] or width > cfg.max_width_m:
         return None
     amodal = convex_fill(mask)

@@ -9,20 +9,34 @@ KINS file (``amodal/SSSS.json``), one per sequence::
     {"images": [{"id", "file_name": "SSSS/FFFFFF.png", "height", "width", "frame"}],
      "categories": [{"id", "name"}],
      "annotations": [{"id", "image_id", "category_id", "track_id",
-                      "a_segm", "i_segm",      # amodal / visible (inmodal) mask, RLE
+                      "a_segm", "i_segm",      # amodal / visible (inmodal) mask, RLE or polygons
                       "a_bbox", "i_bbox",      # [x, y, w, h] of those masks, pixels
                       "a_area", "i_area",      # pixel counts of those masks
                       "oco_id", "ico_id",      # occlusion cluster and order, see below
                       "iscrowd"}]}
 
-Occlusion order (:func:`occlusion_order`): in one image, two instances are linked when their
-amodal masks overlap (one of them necessarily hides the other there); the connected components
-of that graph are the occlusion clusters. ``oco_id`` is the 1-based id of the instance's
-cluster, clusters numbered by the depth of their nearest member (front first); ``ico_id`` is
-the 1-based rank of the instance inside its cluster, sorted by depth from front (1) to back.
-An instance overlapping nobody is alone in its cluster with ``ico_id`` 1. Depth is whatever
-the producer sorts by (e.g. the distance of each vehicle's nearest visible point); ties are
-broken by annotation order.
+Occlusion order (:func:`occlusion_order`), the KINS definitions (Qi et al., CVPR 2019,
+Sec. 3: "occlusion clusters" and the "relative occlusion order" inside them): in one image, two
+instances are linked when their amodal masks overlap (the nearer one hides the other there);
+the connected components with two or more instances are the occlusion clusters.
+
+* ``oco_id``: the 1-based id of the instance's cluster, clusters numbered by the depth of their
+  nearest member (front first); an instance that overlaps no other instance is in no cluster
+  and gets ``oco_id`` 0 **and** ``ico_id`` 0.
+* ``ico_id``: the occlusion order inside the cluster: 1 for an instance that nothing hides
+  (the front-most), and one more than the largest order among the instances that hide it
+  (``1 + max(ico of its occluders)``), so it rises by one each time an instance is occluded:
+  A hides B hides C gives 1, 2, 3; A hiding both B and C (which do not touch) gives 1, 2, 2.
+
+Of two overlapping instances the one with the smaller depth hides the other; depth is whatever
+the producer sorts by (the labeller: the rank of its per-pixel occlusion order; the scene
+writer: the distance of each vehicle's nearest visible point); ties are broken by annotation
+order.
+
+Segmentations are read as COCO RLE or polygons everywhere (:func:`segm_to_mask`; the KINS
+release uses polygons); they are written as RLE, or as polygons with ``polygons=True``
+(:func:`mask_to_polygons`: the outer contours of the mask's connected parts, so a hole inside a
+mask is filled, and a round trip is exact otherwise).
 
 COCO instance file (``instances_2d/SSSS.json``): ``images`` and ``categories`` as above and
 ``annotations`` with ``id``, ``image_id``, ``category_id``, ``segmentation`` (RLE, or polygons
@@ -43,11 +57,13 @@ import numpy as np
 from seqshape._io import atomic_write_json
 from seqshape.errors import DataError, require
 
-#: KINS categories (ids as in the KINS release).
+#: KINS categories: ids 1-8 as in the KINS release, plus bus 9 and trailer 10 (no KINS id;
+#: written by the labeller for datasets that have them, see
+#: :data:`seqshape.data.sequence.CLASS_TO_KINS`).
 KINS_CATEGORIES = [
     {"id": 1, "name": "cyclist"}, {"id": 2, "name": "pedestrian"}, {"id": 4, "name": "car"},
     {"id": 5, "name": "tram"}, {"id": 6, "name": "truck"}, {"id": 7, "name": "van"},
-    {"id": 8, "name": "misc"},
+    {"id": 8, "name": "misc"}, {"id": 9, "name": "bus"}, {"id": 10, "name": "trailer"},
 ]
 
 IMAGE_KEYS = ("id", "file_name", "height", "width")
@@ -116,6 +132,44 @@ def segm_to_mask(segm, height: int, width: int) -> np.ndarray:
     return _decode(mu.merge(rles))
 
 
+def mask_to_polygons(mask) -> list[list[float]]:
+    """COCO polygons ``[[x1, y1, x2, y2, ...], ...]`` of a boolean (H, W) mask: the outer
+    contour of each connected part (``cv2.findContours``, ``RETR_EXTERNAL``).
+
+    The contours are traced on the mask upsampled 2x, so they run along pixel edges and a
+    single pixel or a one-pixel line still gives a valid polygon; :func:`segm_to_mask` of the
+    result gives back the mask exactly, except that holes are filled (outer contours only).
+
+    >>> m = np.zeros((4, 5), dtype=bool); m[1:3, 1:4] = True
+    >>> bool((segm_to_mask(mask_to_polygons(m), 4, 5) == m).all())
+    True
+    """
+    import cv2
+
+    mask = np.asarray(mask, dtype=bool)
+    if mask.ndim != 2:
+        raise ValueError(f"mask must be 2-D (H, W), got shape {mask.shape}")
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if rows.size == 0:
+        return []
+    r0, c0 = rows[0], cols[0]
+    box = mask[r0:rows[-1] + 1, c0:cols[-1] + 1].astype(np.uint8)  # only the mask's box
+    up = np.repeat(np.repeat(box, 2, axis=0), 2, axis=1)
+    contours, _ = cv2.findContours(up, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    out = []
+    for c in contours:
+        xy = (c.reshape(-1, 2).astype(np.float64) + 0.5) / 2 + [c0, r0]
+        if len(xy) < 3:  # cannot happen on the 2x grid; guard the COCO minimum anyway
+            continue
+        out.append([round(float(v), 2) for v in xy.ravel()])
+    return out
+
+
+def encode_segm(mask, polygons: bool = False):
+    """A boolean (H, W) mask as a COCO segmentation: RLE, or polygons (module doc)."""
+    return mask_to_polygons(mask) if polygons else mask_to_rle(mask)
+
+
 def bbox_of_mask(mask) -> list[float]:
     """COCO box ``[x, y, w, h]`` (pixels, x = column) of a boolean mask; zeros when empty."""
     mask = np.asarray(mask, dtype=bool)
@@ -149,11 +203,15 @@ def _mask_overlaps(masks: Sequence[np.ndarray]) -> np.ndarray:
     return out
 
 
-def occlusion_order(depths: Sequence[float], amodal_masks: Sequence[np.ndarray]
-                    ) -> tuple[list[int], list[int]]:
-    """KINS ``(oco_id, ico_id)`` per instance of one image (definition in the module doc).
+def occlusion_order(depths: Sequence[float], amodal_masks: Sequence[np.ndarray],
+                    hides=None) -> tuple[list[int], list[int]]:
+    """KINS ``(oco_id, ico_id)`` per instance of one image (definitions in the module doc).
 
     ``depths`` (K,) sort front (small) to back; ``amodal_masks`` K boolean (H, W) masks.
+    ``hides``: optional ``(K, K)`` bool, ``hides[i, j]`` when instance i covers pixels of j's
+    amodal mask (an exact relation, e.g. a renderer's); for an overlapping pair it decides who
+    is in front where it is one-sided, the depths decide otherwise (and everywhere when the
+    relation has a cycle). Isolated instances get ``(0, 0)``.
     """
     k = len(depths)
     if len(amodal_masks) != k:
@@ -171,27 +229,66 @@ def occlusion_order(depths: Sequence[float], amodal_masks: Sequence[np.ndarray]
 
     for i, j in zip(*np.nonzero(np.triu(overlap, 1)), strict=True):
         parent[find(int(i))] = find(int(j))
-    order = sorted(range(k), key=lambda i: (float(depths[i]), i))  # front to back
+    order = _front_to_back(depths, overlap, hides)
     cluster_ids: dict[int, int] = {}
     oco, ico = [0] * k, [0] * k
-    rank_in: dict[int, int] = {}
+    done: list[int] = []
     for i in order:
+        if not overlap[i].any():
+            continue  # in no cluster: 0, 0
         root = find(i)
         cluster_ids.setdefault(root, len(cluster_ids) + 1)
-        rank_in[root] = rank_in.get(root, 0) + 1
-        oco[i], ico[i] = cluster_ids[root], rank_in[root]
+        oco[i] = cluster_ids[root]
+        # everything overlapping i and already placed is in front of it
+        ico[i] = 1 + max((ico[j] for j in done if overlap[i, j]), default=0)
+        done.append(i)
     return oco, ico
 
 
+def _front_to_back(depths, overlap: np.ndarray, hides) -> list[int]:
+    """Instance indices front to back: by depth, or a topological order of ``hides`` on the
+    overlapping pairs where it is one-sided (depth breaking ties; depth alone on a cycle)."""
+    import graphlib
+
+    k = len(depths)
+    by_depth = sorted(range(k), key=lambda i: (float(depths[i]), i))
+    if hides is None:
+        return by_depth
+    hides = np.asarray(hides, dtype=bool).reshape(k, k)
+    rank = {i: r for r, i in enumerate(by_depth)}
+    # each pair gets one direction: the one-sided relation where there is one, else depth
+    front = {j: set() for j in range(k)}
+    for i, j in zip(*np.nonzero(np.triu(overlap, 1)), strict=True):
+        i, j = int(i), int(j)
+        if hides[i, j] != hides[j, i]:
+            a, b = (i, j) if hides[i, j] else (j, i)
+        else:
+            a, b = (i, j) if rank[i] < rank[j] else (j, i)
+        front[b].add(a)
+    sorter = graphlib.TopologicalSorter(front)
+    try:
+        sorter.prepare()
+    except graphlib.CycleError:
+        return by_depth
+    out = []
+    while sorter.is_active():
+        ready = sorted(sorter.get_ready(), key=rank.get)
+        out.extend(ready)
+        sorter.done(*ready)
+    return out
+
+
 def kins_annotation(ann_id: int, image_id: int, category_id: int, amodal_mask, visible_mask,
-                    oco_id: int, ico_id: int, track_id: int | None = None) -> dict:
-    """One KINS annotation dict from boolean (H, W) amodal and visible masks."""
+                    oco_id: int, ico_id: int, track_id: int | None = None,
+                    polygons: bool = False) -> dict:
+    """One KINS annotation dict from boolean (H, W) amodal and visible masks (segmentations
+    as RLE, or as polygons with ``polygons``)."""
     a = np.asarray(amodal_mask, dtype=bool)
     v = np.asarray(visible_mask, dtype=bool)
     if a.shape != v.shape:
         raise ValueError(f"amodal mask {a.shape} and visible mask {v.shape} differ in size")
     ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
-           "a_segm": mask_to_rle(a), "i_segm": mask_to_rle(v),
+           "a_segm": encode_segm(a, polygons), "i_segm": encode_segm(v, polygons),
            "a_bbox": bbox_of_mask(a), "i_bbox": bbox_of_mask(v),
            "a_area": int(np.count_nonzero(a)), "i_area": int(np.count_nonzero(v)),
            "oco_id": int(oco_id), "ico_id": int(ico_id), "iscrowd": 0}
@@ -201,20 +298,23 @@ def kins_annotation(ann_id: int, image_id: int, category_id: int, amodal_mask, v
 
 
 def coco_annotation(ann_id: int, image_id: int, category_id: int, mask, score: float = 1.0,
-                    track_id: int | None = None) -> dict:
-    """One COCO instance annotation dict (RLE ``segmentation``) from a boolean (H, W) mask."""
+                    track_id: int | None = None, polygons: bool = False) -> dict:
+    """One COCO instance annotation dict from a boolean (H, W) mask (``segmentation`` RLE, or
+    polygons with ``polygons``)."""
     m = np.asarray(mask, dtype=bool)
     ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
-           "segmentation": mask_to_rle(m), "bbox": bbox_of_mask(m), "area": int(np.count_nonzero(m)),
+           "segmentation": encode_segm(m, polygons), "bbox": bbox_of_mask(m), "area": int(np.count_nonzero(m)),
            "score": float(score), "iscrowd": 0}
     if track_id is not None:
         ann["track_id"] = int(track_id)
     return ann
 
 
-def image_entry(image_id: int, sequence: str, frame: int, height: int, width: int) -> dict:
-    """An ``images`` entry with ``file_name`` ``SSSS/FFFFFF.png``."""
-    return {"id": int(image_id), "file_name": f"{sequence}/{int(frame):06d}.png",
+def image_entry(image_id: int, sequence: str, frame: int, height: int, width: int,
+                file_name: str | None = None) -> dict:
+    """An ``images`` entry; ``file_name`` defaults to KITTI's ``SSSS/FFFFFF.png``."""
+    name = file_name if file_name is not None else f"{sequence}/{int(frame):06d}.png"
+    return {"id": int(image_id), "file_name": name,
             "height": int(height), "width": int(width), "frame": int(frame)}
 
 
@@ -294,6 +394,11 @@ def read_coco_instances(path: str | Path) -> dict[str, list[dict]]:
         ann.setdefault("score", 1.0)
         ann.setdefault("iscrowd", 0)
     return doc
+
+
+def annotation_mask(ann: dict, key: str, image: dict) -> np.ndarray:
+    """The boolean (H, W) mask of ``ann[key]`` (RLE or polygons) on its ``image`` entry."""
+    return segm_to_mask(ann[key], int(image["height"]), int(image["width"]))
 
 
 def annotations_by_image(doc: dict[str, list[dict]]) -> dict[int, list[dict]]:

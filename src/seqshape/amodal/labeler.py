@@ -1,18 +1,27 @@
-"""Automatic amodal mask labels for one KITTI tracking sequence (the paper's Section IV).
+"""Automatic amodal mask labels for one driving log and camera (the paper's Section IV).
+
+The input is any :class:`~seqshape.data.sequence.DrivingLog` with cameras (KITTI tracking,
+nuScenes, Argoverse 2): its LiDAR sweeps (``log.points``), boxes (``log.vehicle_boxes``), ego
+poses, and one camera (``log.camera(name, frame)``, a PinholeCamera); :func:`label_log` is the
+entry point (:func:`label_sequence` opens a KITTI sequence for it).
 
 Modes:
 
-* ``gt-accumulation``: points cropped by the ground-truth boxes (``extract_tracks``),
+* ``gt-accumulation``: points cropped by the ground-truth boxes
+  (:func:`seqshape.data.extract.extract_tracks`, :func:`seqshape.data.crop.crop_vehicle`),
   accumulated in the canonical frame with the ground-truth poses, mirrored about the heading
   axis and placed back in every frame (:mod:`seqshape.amodal.accumulate`).
 * ``sc-gt``: the same crops, completed by the sequential estimator (:mod:`.refine`).
 * ``sc-seg``: no 3D labels. Each frame's LiDAR points (ground removed) are labelled from the
-  2D instance masks of ``instances_2d/SSSS.json`` by graph diffusion (:mod:`.diffusion`),
-  associated across frames into tracks (:mod:`.association`, with oxts ego motion when present)
-  and completed by the estimator.
+  2D instance masks of a COCO file (default ``ROOT/instances_2d/<log name>.json``, images
+  matched by ``log.image_file_name(frame, camera)``) by graph diffusion (:mod:`.diffusion`),
+  associated across frames into tracks (:mod:`.association`, with the log's ego motion when
+  it has one) and completed by the estimator.
 
-Then per frame the completed clouds are projected, their alpha shapes filled as amodal masks,
-and ordered by depth for the visible masks (:mod:`.masks`); the result is KINS JSON.
+Then per frame the completed clouds are projected into the camera, their alpha shapes filled
+as amodal masks, and ordered by depth for the visible masks (:mod:`.masks`); the result is KINS
+JSON, one file per camera. Category ids of the gt modes come from
+:data:`seqshape.data.sequence.CLASS_TO_KINS` (car 4, van 7, truck 6, bus 9, trailer 10).
 """
 
 from __future__ import annotations
@@ -29,28 +38,32 @@ from seqshape.amodal.accumulate import gt_accumulation_clouds
 from seqshape.amodal.align import AlignConfig
 from seqshape.amodal.masks import ORDERS, InstanceMask, frame_masks
 from seqshape.amodal.refine import REFINE_MODES, TrackInput, complete_tracks
+from seqshape.data.crop import CropConfig
 from seqshape.errors import ConfigError, DataError
 
 log = logging.getLogger(__name__)
 
 MODES = ("gt-accumulation", "sc-gt", "sc-seg")
-#: KITTI object type -> KINS category id
-TYPE_TO_CATEGORY = {"Car": 4, "Van": 7, "Truck": 6, "Tram": 5, "Cyclist": 1, "Pedestrian": 2,
-                    "Person_sitting": 2, "Misc": 8}
 DEFAULT_REFINE = "smooth"  # measured best for sc-seg, equal to backfill for sc-gt (docs/amodal.md)
 
 
 @dataclass
 class LabelConfig:
-    """Options of :func:`label_sequence`.
+    """Options of :func:`label_log`.
 
     mode: one of :data:`MODES`.
     checkpoint: estimator weights (path), or "pretrained" for the shipped ones (sc-* modes).
     refine: offline refinement, one of ``REFINE_MODES`` (sc-* modes).
     order: occlusion rule of :func:`seqshape.amodal.masks.resolve_occlusion`.
     alpha: alpha of the alpha shapes (None = automatic).
-    types: KITTI types labelled in the gt modes.
-    instances: COCO instance masks for sc-seg (default ``ROOT/instances_2d/SSSS.json``).
+    classes: seqshape vehicle classes labelled in the gt modes (None: all of
+        :data:`~seqshape.data.sequence.VEHICLE_CLASSES`; KITTI Car, Van and Truck).
+    instances: COCO instance masks for sc-seg (default ``ROOT/instances_2d/<log>.json``).
+    crop: how the gt modes cut each vehicle out of its sweeps
+        (:class:`~seqshape.data.crop.CropConfig`; default: box + 0.2 m margin, minus what lies
+        less than 0.2 m above a locally fitted ground plane).
+    polygons: write the segmentations as polygons (outer contours,
+        :func:`~seqshape.amodal.kins.mask_to_polygons`) instead of RLE.
     min_points: sc-seg instances with fewer segmented points are dropped.
     gate: sc-seg association gate (m).
     min_visible_area: instances whose predicted visible mask is smaller (pixels) are not
@@ -87,8 +100,10 @@ class LabelConfig:
     refine: str = DEFAULT_REFINE
     order: str = "pixel"
     alpha: float | None = None
-    types: tuple[str, ...] = ("Car", "Van")
+    classes: tuple[str, ...] | None = None
     instances: str | None = None
+    crop: CropConfig = field(default_factory=CropConfig)
+    polygons: bool = False
     min_points: int = 5
     gate: float = 3.0
     min_visible_area: int = 10
@@ -116,16 +131,22 @@ class LabelConfig:
             raise ConfigError(f"trim must be a percentage in [0, 50), got {self.trim}")
         if self.fit_box_below < 0:
             raise ConfigError(f"fit_box_below must be >= 0, got {self.fit_box_below}")
+        if self.classes is not None:
+            from seqshape.data.sequence import parse_classes
+
+            self.classes = parse_classes(self.classes)
 
 
 @dataclass
 class LabelResult:
-    """KINS ``images`` and ``annotations``, the masks per frame, and timings (s)."""
+    """KINS ``images`` and ``annotations`` of one camera, the masks per frame, and timings
+    (s)."""
 
     images: list[dict]
     annotations: list[dict]
     masks: dict[int, list[InstanceMask]] = field(repr=False)
     timings: dict[str, float] = field(default_factory=dict)
+    camera: str | None = None
 
 
 def load_estimator(checkpoint: str | None):
@@ -140,14 +161,27 @@ def load_estimator(checkpoint: str | None):
     return Estimator.from_checkpoint(path)
 
 
-def gt_track_inputs(seq, types=("Car", "Van")):
-    """``extract_tracks`` of the sequence and the matching :class:`TrackInput` list."""
-    from seqshape.data.kitti import extract_tracks
+def label_ids(object_ids) -> dict[str, int]:
+    """The integer KINS ``track_id`` of each dataset object id: the id itself when it is an
+    integer (KITTI), else its 1-based rank among the log's sorted object ids."""
+    ids = sorted(set(object_ids))
+    if all(i.isdigit() for i in ids):
+        return {i: int(i) for i in ids}
+    return {i: k + 1 for k, i in enumerate(ids)}
 
-    tracks = extract_tracks(seq, types=types)
+
+def gt_track_inputs(log, classes=None, crop: CropConfig | None = None):
+    """The log's vehicle tracks (:func:`seqshape.data.extract.extract_tracks`, ``classes``
+    default all, ``crop`` default :class:`CropConfig`) and the matching :class:`TrackInput`
+    list."""
+    from seqshape.data.extract import extract_tracks
+    from seqshape.data.sequence import CLASS_TO_KINS
+
+    tracks = extract_tracks(log, classes=classes, crop=crop)
+    ids = label_ids(t.meta["object_id"] for t in tracks)
     inputs = [TrackInput(t.track_id, list(t.meta["frames"]), t.points, t.poses,
-                         TYPE_TO_CATEGORY.get(t.meta.get("type"), 8),
-                         int(t.meta["kitti_track_id"]), np.asarray(t.size, dtype=np.float64))
+                         CLASS_TO_KINS[t.meta["class"]], ids[t.meta["object_id"]],
+                         np.asarray(t.size, dtype=np.float64))
               for t in tracks]
     return tracks, inputs
 
@@ -178,49 +212,50 @@ def clouds_by_frame(inputs, clouds_per_track) -> dict[int, dict[str, tuple]]:
 
 
 def open_sequence(root, sequence, max_frames: int | None = None):
-    """The :class:`KittiTrackingSequence`, restricted to its first ``max_frames`` frames.
-
-    The restriction drops the later frames from ``frames``, ``labels`` and ``labels_by_frame``,
-    so everything downstream (track extraction, segmentation, masks) sees a shorter sequence:
-    a track is estimated from its first frame within the subset.
-    """
+    """The KITTI :class:`~seqshape.data.kitti.KittiTrackingSequence`, restricted to its first
+    ``max_frames`` frames (:meth:`~seqshape.data.sequence.DrivingLog.restrict`): everything
+    downstream (track extraction, segmentation, masks) sees a shorter sequence, so a track is
+    estimated from its first frame within the subset."""
     from seqshape.data.kitti import KittiTrackingSequence
 
-    seq = KittiTrackingSequence(root, sequence)
-    if max_frames is not None:
-        if max_frames < 1:
-            raise ConfigError(f"max_frames must be >= 1, got {max_frames}")
-        seq.frames = seq.frames[:max_frames]
-        keep = set(seq.frames)
-        seq.labels = [lab for lab in seq.labels if lab.frame in keep]
-        seq.labels_by_frame = {f: v for f, v in seq.labels_by_frame.items() if f in keep}
-    return seq
+    return KittiTrackingSequence(root, sequence).restrict(max_frames)
+
+
+def check_camera(log, camera: str | None) -> str:
+    """``camera`` (default: the log's default camera), checked against the log's cameras."""
+    if not log.camera_names:
+        raise ConfigError(f"{log.dataset} log {log.name} has no cameras: amodal labels need "
+                          f"one (KITTI: a calib file; nuScenes/Argoverse 2: camera images)")
+    camera = camera or log.default_camera or log.camera_names[0]
+    if camera not in log.camera_names:
+        raise ConfigError(f"{log.dataset} log {log.name} has no camera {camera!r} (cameras: "
+                          f"{', '.join(log.camera_names)})")
+    return camera
 
 
 def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
                    max_frames: int | None = None) -> LabelResult:
-    """Amodal labels of every frame of ``ROOT/.../SSSS`` (module doc); nothing is written.
+    """:func:`label_log` of KITTI sequence ``ROOT/.../SSSS``, camera ``image_02``;
+    ``max_frames``: label only the first that many frames (:func:`open_sequence`)."""
+    return label_log(open_sequence(root, sequence, max_frames), cfg, estimator=estimator)
 
-    ``max_frames``: label only the first that many frames (:func:`open_sequence`).
-    """
-    seq = open_sequence(root, sequence, max_frames)
-    if not seq.frames:
-        raise DataError(Path(root), f"sequence {seq.sequence}: no frames found")
-    timings: dict[str, float] = {}
+
+def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict):
+    """``(by_frame clouds, extra mask-only instances)`` of the log (module doc)."""
     t0 = time.perf_counter()
     extra = None
     if cfg.mode == "sc-seg":
         from seqshape.amodal.association import segment_sequence
 
         inst_path = Path(cfg.instances) if cfg.instances else (
-            Path(root) / "instances_2d" / f"{seq.sequence}.json")
+            Path(log.root) / "instances_2d" / f"{log.name}.json")
         unsupported: dict | None = {} if cfg.mask_fallback else None
-        inputs = segment_sequence(seq, inst_path, min_points=cfg.min_points, gate=cfg.gate,
+        inputs = segment_sequence(log, inst_path, min_points=cfg.min_points, gate=cfg.gate,
                                   max_gap=cfg.max_gap if cfg.refine == "smooth" else 0,
-                                  unsupported=unsupported)
-        extra = mask_only_labels(seq, unsupported or {})
+                                  unsupported=unsupported, camera=camera)
+        extra = mask_only_labels(log, unsupported or {}, camera)
     else:
-        tracks, inputs = gt_track_inputs(seq, cfg.types)
+        tracks, inputs = gt_track_inputs(log, cfg.classes, cfg.crop)
     timings["segment"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     if cfg.mode == "gt-accumulation":
@@ -234,41 +269,75 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
             clouds = [add_observed(inp, cl, cfg.observed_max) for inp, cl in
                       zip(inputs, clouds, strict=True)]
     timings["complete"] = time.perf_counter() - t0
+    return clouds_by_frame(inputs, clouds), extra
+
+
+def _render_timed(log, by_frame, cfg, extra, camera, timings) -> LabelResult:
     t0 = time.perf_counter()
-    result = render_labels(seq, clouds_by_frame(inputs, clouds), cfg, extra)
+    result = render_labels(log, by_frame, cfg, extra, camera=camera)
     timings["masks"] = time.perf_counter() - t0
-    timings["total"] = sum(timings.values())
-    timings["frames"] = len(seq.frames)
+    timings["total"] = sum(v for k, v in timings.items() if k != "frames")
+    timings["frames"] = len(log.frames)
     result.timings = timings
     return result
 
 
-def mask_only_labels(seq, unsupported: dict) -> dict[int, list[tuple[InstanceMask, int]]]:
+def label_log(log, cfg: LabelConfig, camera: str | None = None,
+              estimator=None) -> LabelResult:
+    """Amodal labels of every frame of ``log`` (a DrivingLog) in ``camera`` (default: the log's
+    default camera) (module doc); nothing is written. A log without cameras is a
+    :class:`~seqshape.errors.ConfigError`."""
+    camera = check_camera(log, camera)
+    if not log.frames:
+        raise DataError(Path(log.root), f"{log.dataset} log {log.name}: no frames found")
+    timings: dict[str, float] = {}
+    by_frame, extra = _complete(log, cfg, camera, estimator, timings)
+    return _render_timed(log, by_frame, cfg, extra, camera, timings)
+
+
+def label_log_cameras(log, cfg: LabelConfig, cameras=None, estimator=None
+                      ) -> dict[str, LabelResult]:
+    """:func:`label_log` for several cameras (default: all of the log's); the gt and sc-gt
+    modes complete the tracks once and project them into every camera (sc-seg segments each
+    camera's own 2D masks)."""
+    cameras = [check_camera(log, c) for c in (cameras or log.camera_names)]
+    if not log.frames:
+        raise DataError(Path(log.root), f"{log.dataset} log {log.name}: no frames found")
+    if cfg.mode == "sc-seg":
+        return {c: label_log(log, cfg, c, estimator) for c in cameras}
+    timings: dict[str, float] = {}
+    by_frame, _ = _complete(log, cfg, cameras[0], estimator, timings)
+    return {c: _render_timed(log, by_frame, cfg, None, c, dict(timings)) for c in cameras}
+
+
+def mask_only_labels(log, unsupported: dict, camera: str | None = None
+                     ) -> dict[int, list[tuple[InstanceMask, int]]]:
     """``{frame: [(instance, category_id)]}``: the mask-only labels
     (:mod:`seqshape.amodal.fallback`) of the 2D instances without LiDAR support
     (``{frame: [(mask, coco annotation, ground plane)]}``, from
-    :func:`~seqshape.amodal.association.segment_sequence`)."""
+    :func:`~seqshape.amodal.association.segment_sequence`) seen by ``camera``."""
     from seqshape.amodal.fallback import mask_instance
 
     out: dict[int, list[tuple[InstanceMask, int]]] = {}
     for frame in sorted(unsupported):
+        cam = log.camera(camera, frame)
         for k, (mask, ann, plane) in enumerate(unsupported[frame]):
-            inst = mask_instance(f"{seq.sequence}_mask{frame:06d}_{k}", mask,
-                                 float(ann.get("score", 1.0)), plane, seq.calib)
+            inst = mask_instance(f"{log.name}_mask{frame:06d}_{k}", mask,
+                                 float(ann.get("score", 1.0)), plane, cam)
             if inst is not None:
                 out.setdefault(frame, []).append((inst, int(ann["category_id"])))
     return out
 
 
-def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
-                  extra: dict[int, list[tuple[InstanceMask, int]]] | None = None
-                  ) -> LabelResult:
-    """Masks and KINS records of every frame from the completed clouds, plus the ``extra``
-    instances made otherwise (:func:`mask_only_labels`; no ``track_id``)."""
+def render_labels(log, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
+                  extra: dict[int, list[tuple[InstanceMask, int]]] | None = None,
+                  camera: str | None = None) -> LabelResult:
+    """Masks and KINS records of every frame of ``log`` in ``camera`` (default: the log's
+    default) from the completed clouds, plus the ``extra`` instances made otherwise
+    (:func:`mask_only_labels`; no ``track_id``)."""
     from seqshape.amodal.kins import image_entry, kins_annotation, occlusion_order
 
-    calib = seq.calib
-    size = (calib.height, calib.width)
+    camera = check_camera(log, camera)
     images, anns, masks = [], [], {}
     # track id -> frame -> (RLE of its 2D mask, position of the frame in the track)
     mask_index: dict[str, dict[int, tuple[dict, int]]] = {}
@@ -278,15 +347,18 @@ def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
                 mask_index[tid] = {f: (r, i) for i, (f, r) in
                                    enumerate(zip(inp.frames, inp.masks, strict=True))
                                    if r is not None}
-    for image_id, frame in enumerate(progress(seq.frames, desc=f"masks {seq.sequence}",
+    for image_id, frame in enumerate(progress(log.frames, desc=f"masks {log.name} {camera}",
                                               unit="frame")):
-        images.append(image_entry(image_id, seq.sequence, frame, *size))
+        cam = log.camera(camera, frame)
+        size = (cam.height, cam.width)
+        images.append(image_entry(image_id, log.name, frame, *size,
+                                  file_name=log.image_file_name(frame, camera)))
         items = by_frame.get(frame, {})
         more = (extra or {}).get(frame, [])
         meta = {tid: (inp.category_id, inp.label_id) for tid, (_, inp) in items.items()}
         meta.update({m.track_id: (cat, None) for m, cat in more})
         guides, own = _guides(items, frame, mask_index) if cfg.align else (None, None)
-        insts = frame_masks({tid: c for tid, (c, _) in items.items()}, calib, size,
+        insts = frame_masks({tid: c for tid, (c, _) in items.items()}, cam, size,
                             alpha=cfg.alpha, order=cfg.order, extra=[m for m, _ in more],
                             guides=guides, align=cfg.align_config if cfg.align else None,
                             guide_points=own)
@@ -296,10 +368,10 @@ def render_labels(seq, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
         for m, o, i in zip(insts, oco, ico, strict=True):
             cat, label_id = meta[m.track_id]
             ann = kins_annotation(len(anns) + 1, image_id, cat, m.amodal, m.visible, o, i,
-                                  track_id=label_id)
+                                  track_id=label_id, polygons=cfg.polygons)
             ann["depth"] = round(float(m.depth), 3)
             anns.append(ann)
-    return LabelResult(images, anns, masks)
+    return LabelResult(images, anns, masks, camera=camera)
 
 
 def _guides(items: dict, frame: int, mask_index: dict
@@ -318,7 +390,8 @@ def _guides(items: dict, frame: int, mask_index: dict
 
 
 def write_labels(path, result: LabelResult) -> None:
-    """Write the KINS JSON of a :class:`LabelResult`."""
+    """Write the KINS JSON of a :class:`LabelResult` (categories: KINS's plus bus 9 and
+    trailer 10, :data:`~seqshape.amodal.kins.KINS_CATEGORIES`)."""
     from seqshape.amodal.kins import write_kins
 
     write_kins(path, result.images, result.annotations)
@@ -344,30 +417,33 @@ def draw_overlay(image: np.ndarray, insts: list[InstanceMask]) -> np.ndarray:
                                        cv2.CHAIN_APPROX_SIMPLE)
         cv2.drawContours(out, contours, -1, _colour(k), 1)
         ys, xs = np.nonzero(m.amodal)
-        cv2.putText(out, f"{m.track_id.split('_')[-1]}:{m.order + 1}",
+        cv2.putText(out, f"{m.track_id.split('_')[-1][:8]}:{m.order + 1}",
                     (int(xs.min()), max(int(ys.min()) - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
                     _colour(k), 1, cv2.LINE_AA)
     return out
 
 
-def write_overlays(seq, result: LabelResult, out_dir, frames=None) -> list[Path]:
-    """Overlay PNGs ``OUT/SSSS_FFFFFF.png`` (image, or black when absent); returns the paths."""
+def write_overlays(log, result: LabelResult, out_dir, frames=None) -> list[Path]:
+    """Overlay PNGs ``OUT/<log>_FFFFFF.png`` of ``result``'s camera (the image, or black when
+    absent); returns the paths."""
     import cv2
 
     from seqshape._io import atomic_write_bytes
 
     out_dir = Path(out_dir)
-    calib = seq.calib
+    camera = check_camera(log, result.camera)
     paths = []
-    for frame in (seq.frames if frames is None else frames):
-        img_path = seq.image_path(frame)
-        img = cv2.imread(str(img_path), cv2.IMREAD_COLOR) if img_path.is_file() else None
+    for frame in (log.frames if frames is None else frames):
+        img_path = log.image_path(frame, camera)
+        img = (cv2.imread(str(img_path), cv2.IMREAD_COLOR)
+               if img_path is not None and Path(img_path).is_file() else None)
         if img is None:
-            img = np.zeros((calib.height, calib.width, 3), np.uint8)
+            cam = log.camera(camera, frame)
+            img = np.zeros((cam.height, cam.width, 3), np.uint8)
         ok, buf = cv2.imencode(".png", draw_overlay(img, result.masks.get(frame, [])))
         if not ok:
             raise DataError(out_dir, f"could not encode the overlay of frame {frame}")
-        path = out_dir / f"{seq.sequence}_{frame:06d}.png"
+        path = out_dir / f"{log.name}_{frame:06d}.png"
         atomic_write_bytes(path, buf.tobytes())
         paths.append(path)
     return paths

@@ -1,7 +1,8 @@
 """Amodal and visible masks of one image from completed point clouds, and the occlusion order.
 
 Per instance: the completed cloud (``(K, 3)`` in the LiDAR/sensor frame) is projected with the
-camera (:func:`seqshape.camera.project_points`); points less than ``min_depth`` in front of the
+camera (a :class:`seqshape.camera.PinholeCamera`, any dataset; a KITTI calibration is taken as
+its camera 2); points less than ``min_depth`` in front of the
 camera are dropped; the amodal mask is the filled alpha shape of the rest
 (:mod:`seqshape.amodal.alpha`), clipped to the image.
 
@@ -53,17 +54,18 @@ class InstanceMask:
     z: np.ndarray = field(default=None, repr=False)  # (M,) their depths
 
 
-def project_cloud(points, calib, image_size, min_depth: float = MIN_DEPTH):
-    """Project ``points (N, 3)`` (sensor frame) with camera 2; ``(uv (M, 2), depth (M,))``.
+def project_cloud(points, camera, image_size=None, min_depth: float = MIN_DEPTH):
+    """Project ``points (N, 3)`` (sensor frame) with ``camera`` (a PinholeCamera);
+    ``(uv (M, 2), depth (M,))``.
 
     Points nearer than ``min_depth`` metres in front of the camera are dropped.
     """
-    from seqshape.camera import project_points
+    from seqshape.camera import as_camera
 
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
         return np.zeros((0, 2)), np.zeros(0)
-    uv, depth = project_points(points, calib, cam=2)
+    uv, depth = as_camera(camera).project(points)
     uv, depth = np.asarray(uv, dtype=np.float64), np.asarray(depth, dtype=np.float64)
     keep = np.isfinite(depth) & (depth > min_depth) & np.all(np.isfinite(uv), axis=1)
     return uv[keep], depth[keep]
@@ -153,12 +155,13 @@ def resolve_occlusion(insts: list[InstanceMask], order: str = "pixel") -> list[I
     return insts
 
 
-def frame_masks(clouds: dict[str, np.ndarray], calib, image_size: tuple[int, int],
+def frame_masks(clouds: dict[str, np.ndarray], camera, image_size: tuple[int, int],
                 alpha: float | None = None, order: str = "pixel",
                 min_depth: float = MIN_DEPTH, extra=(),
                 max_covered: float = 0.9, guides=None, align=None,
                 guide_points=None) -> list[InstanceMask]:
-    """Masks of one image from completed clouds ``{track_id: (K, 3) sensor frame}``.
+    """Masks of one ``(h, w)`` image of ``camera`` (a PinholeCamera) from completed clouds
+    ``{track_id: (K, 3) sensor frame}``.
 
     Instances whose amodal mask is empty (behind the camera, outside the image) are left out.
     ``extra``: instances made otherwise (mask-only labels, :mod:`seqshape.amodal.fallback`),
@@ -172,7 +175,7 @@ def frame_masks(clouds: dict[str, np.ndarray], calib, image_size: tuple[int, int
     """
     insts = []
     for tid, pts in clouds.items():
-        uv, depth = project_cloud(pts, calib, image_size, min_depth=min_depth)
+        uv, depth = project_cloud(pts, camera, image_size, min_depth=min_depth)
         if len(uv) == 0:
             continue
         inst = instance_from_projection(tid, uv, depth, image_size, alpha=alpha)
@@ -190,7 +193,7 @@ def frame_masks(clouds: dict[str, np.ndarray], calib, image_size: tuple[int, int
     if align is not None and guides:
         from seqshape.amodal.align import align_instances
 
-        pix = {tid: project_cloud(p, calib, image_size, min_depth=min_depth)[0]
+        pix = {tid: project_cloud(p, camera, image_size, min_depth=min_depth)[0]
                for tid, p in (guide_points or {}).items()}
         if align_instances(insts, guides, align, pix):
             insts = resolve_occlusion(insts, order=order)

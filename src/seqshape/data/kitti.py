@@ -31,9 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from seqshape._io import atomic_write_bytes, atomic_write_text, read_text
-from seqshape.camera import KittiCalib, cam_to_velo, read_calib, velo_to_cam
+from seqshape.camera import KittiCalib, PinholeCamera, cam_to_velo, read_calib, velo_to_cam
+from seqshape.data.crop import CropConfig
+from seqshape.data.sequence import Box3D, DrivingLog
 from seqshape.data.track import Track
-from seqshape.errors import DataError
+from seqshape.errors import ConfigError, DataError
 from seqshape.geometry import points_in_box, sensor_to_canonical, wrap_angle
 
 log = logging.getLogger(__name__)
@@ -346,19 +348,56 @@ def imu_to_velo_poses(imu_poses, calib: KittiCalib) -> np.ndarray:
 # ----------------------------------------------------------------------------- sequences
 
 
-class KittiTrackingSequence:
-    """One sequence of a KITTI tracking root folder (layout in the module docstring).
+#: KITTI object type -> seqshape vehicle class (other types: not a vehicle)
+KITTI_CLASSES = {"Car": "car", "Van": "van", "Truck": "truck"}
+#: KITTI cameras as :class:`~seqshape.data.sequence.DrivingLog` camera names
+CAMERAS = ("image_02", "image_03")
 
-    ``frames`` are the frame indices with a velodyne scan (or, without velodyne, with an
-    image, or else with labels); ``labels`` the label rows (empty without a label file);
-    ``calib`` the calibration (its ``image_size`` taken from the first image when there is
-    one); ``oxts`` the ``(T, 30)`` rows or None; ``ego_poses`` the velodyne poses
-    ``(T, 4, 4)`` (frame-t velodyne -> frame-0 velodyne) from oxts, or None.
+
+def _cam_index(camera) -> int:
+    """``"image_02"``, ``2`` or None (the left colour camera) -> KITTI camera number."""
+    if camera is None:
+        return 2
+    if isinstance(camera, (int, np.integer)):
+        cam = int(camera)
+    elif isinstance(camera, str) and camera.startswith("image_") and camera[6:].isdigit():
+        cam = int(camera[6:])
+    else:
+        cam = -1
+    if cam not in (2, 3):
+        raise ConfigError(f"KITTI tracking has cameras {', '.join(CAMERAS)}, not {camera!r}")
+    return cam
+
+
+class KittiTrackingSequence(DrivingLog):
+    """One sequence of a KITTI tracking root folder (layout in the module docstring), the
+    KITTI implementation of :class:`~seqshape.data.sequence.DrivingLog`.
+
+    ``name`` (and ``sequence``) the zero-padded sequence (``"0003"``); ``frames`` the frame
+    indices with a velodyne scan (or, without velodyne, with an image, or else with labels);
+    ``labels`` the label rows (empty without a label file); ``calib`` the calibration (its
+    ``image_size`` taken from the first image when there is one); ``oxts`` the ``(T, 30)`` rows
+    or None; ``ego_poses`` the velodyne poses ``(T, 4, 4)`` (frame-t velodyne -> frame-0
+    velodyne) from oxts, or None.
+
+    Protocol: ``timestamp(f) = f / 10`` s; ``points(f)`` the velodyne scan ``(N, 4)``;
+    ``boxes(f)`` the label rows of the frame as :class:`~seqshape.data.sequence.Box3D`
+    (:func:`label_to_pose`; ``track_id`` ``"TTTT"``, ``category`` the KITTI type, ``cls`` from
+    :data:`KITTI_CLASSES`, ``visibility`` the ``occluded`` level 0-3, ``extra`` truncated,
+    alpha, bbox, kitti_track_id; DontCare rows and rows with a negative track id are left
+    out); ``ego_pose(f)`` from oxts; cameras ``image_02`` (default) and ``image_03`` when a
+    calibration file exists, ``camera(name)`` = :meth:`KittiCalib.camera`;
+    ``image_file_name`` keeps KITTI's ``SSSS/FFFFFF.png`` (for both cameras: one KINS file is
+    written per camera).
     """
+
+    dataset = "kitti"
+    sensor = "hdl64"
 
     def __init__(self, root, sequence: int | str):
         self.root = Path(root)
         self.sequence = seq_name(sequence)
+        self.name = self.sequence
         if not self.root.is_dir():
             raise DataError(self.root, "no such KITTI root folder")
         lpath = label_path(self.root, self.sequence)
@@ -368,6 +407,10 @@ class KittiTrackingSequence:
         opath = oxts_path(self.root, self.sequence)
         self.oxts: np.ndarray | None = read_oxts(opath) if opath.is_file() else None
         self._calib: KittiCalib | None = None
+        self._ego: np.ndarray | None = None
+        has_calib = calib_path(self.root, self.sequence).is_file()
+        self.camera_names = CAMERAS if has_calib else ()
+        self.default_camera = CAMERAS[0] if has_calib else None
 
     def _find_frames(self) -> list[int]:
         for folder, ext in (("velodyne", ".bin"), ("image_02", ".png")):
@@ -391,16 +434,68 @@ class KittiTrackingSequence:
     def ego_poses(self) -> np.ndarray | None:
         if self.oxts is None:
             return None
-        return imu_to_velo_poses(oxts_to_poses(self.oxts), self.calib)
+        if self._ego is None:
+            self._ego = imu_to_velo_poses(oxts_to_poses(self.oxts), self.calib)
+        return self._ego
 
-    def __len__(self) -> int:
-        return len(self.frames)
+    def restrict(self, max_frames: int | None) -> KittiTrackingSequence:
+        """The sequence as if it ended after its first ``max_frames`` frames (labels too)."""
+        super().restrict(max_frames)
+        keep = set(self.frames)
+        self.labels = [lab for lab in self.labels if lab.frame in keep]
+        self.labels_by_frame = {f: v for f, v in self.labels_by_frame.items() if f in keep}
+        return self
+
+    # ------------------------------------------------------------------ DrivingLog
+
+    def timestamp(self, frame: int) -> float:
+        return int(frame) / FRAME_RATE_HZ
+
+    def points(self, frame: int) -> np.ndarray:
+        return self.velodyne(frame)
+
+    def boxes(self, frame: int) -> list[Box3D]:
+        out = []
+        for lab in self.frame_labels(frame):
+            if lab.is_dontcare or lab.track_id < 0:
+                continue
+            pose, size = label_to_pose(lab, self.calib)
+            out.append(Box3D(
+                track_id=f"{lab.track_id:04d}", category=lab.type, cls=KITTI_CLASSES.get(lab.type),
+                centre=pose[:3], size=size, yaw=pose[3], visibility=float(lab.occluded),
+                extra={"truncated": lab.truncated, "alpha": lab.alpha, "bbox": lab.bbox.tolist(),
+                       "kitti_track_id": lab.track_id}))
+        return out
+
+    def ego_pose(self, frame: int) -> np.ndarray | None:
+        ego = self.ego_poses
+        if ego is None or not 0 <= int(frame) < len(ego):
+            return None
+        return ego[int(frame)]
+
+    def camera(self, name=None, frame: int | None = None) -> PinholeCamera:
+        if not self.camera_names:
+            raise ConfigError(f"KITTI sequence {self.sequence}: no calibration file "
+                              f"{calib_path(self.root, self.sequence)}, so no cameras")
+        return self.calib.camera(_cam_index(name))
+
+    def image_path(self, frame: int, camera="image_02") -> Path:
+        """The image of ``frame`` (``camera``: ``"image_02"``/``"image_03"`` or 2/3), where KITTI
+        keeps it (the file may not exist)."""
+        return image_path(self.root, self.sequence, frame, _cam_index(camera))
+
+    def image_file_name(self, frame: int, camera=None) -> str:
+        _cam_index(camera)
+        return f"{self.sequence}/{int(frame):06d}.png"
+
+    @classmethod
+    def log_names(cls, root) -> list[str]:
+        return cls.sequences(root)
+
+    # ------------------------------------------------------------------ KITTI helpers
 
     def velodyne_path(self, frame: int) -> Path:
         return velodyne_path(self.root, self.sequence, frame)
-
-    def image_path(self, frame: int, cam: int = 2) -> Path:
-        return image_path(self.root, self.sequence, frame, cam)
 
     def velodyne(self, frame: int) -> np.ndarray:
         """The scan of ``frame``, ``(N, 4)`` float32."""
@@ -423,7 +518,9 @@ def crop_box(points, pose, size, margin: float = 0.2, ground: float | None = 0.1
     """Points ``(N, 3+)`` inside a posed box enlarged by ``margin`` (m), as ``(M, 3)`` float32.
 
     With ``ground`` set, points lower than the box bottom + ``ground`` (in the box's own
-    frame) are dropped: the road under the wheels.
+    frame) are dropped: the road under the wheels. The former KITTI crop, kept for callers
+    that want a plain box cut; track extraction and the labeller use
+    :func:`seqshape.data.crop.crop_vehicle` (ground by a locally fitted plane).
     """
     pts = np.asarray(points)[:, :3]
     pose = np.asarray(pose, dtype=np.float64)
@@ -438,51 +535,32 @@ def crop_box(points, pose, size, margin: float = 0.2, ground: float | None = 0.1
     return np.ascontiguousarray(cand[keep], dtype=np.float32)
 
 
-def extract_tracks(seq: KittiTrackingSequence, margin: float = 0.2, remove_ground: bool = True,
-                   types=("Car", "Van"), min_points: int = 0,
-                   ground_height: float = 0.15) -> list[Track]:
-    """Tracks of one sequence: per track id, each frame's LiDAR points inside its 3D box.
+def kitti_classes(types) -> tuple[str, ...]:
+    """KITTI types (``("Car", "Van")``) -> seqshape classes; a type without one is an error."""
+    bad = [t for t in types if t not in KITTI_CLASSES]
+    if bad:
+        raise ConfigError(f"KITTI types {bad} are not vehicles seqshape extracts (choose from "
+                          f"{', '.join(KITTI_CLASSES)})")
+    return tuple(dict.fromkeys(KITTI_CLASSES[t] for t in types))
 
-    Points are in that frame's velodyne frame (float32 (N, 3)); ``poses`` the boxes
-    (:func:`label_to_pose`); ``size`` the median (l, w, h) over frames; ``timestamps``
-    frame / 10 Hz; ``complete`` None. A track is kept when at least one frame has
-    ``min_points`` points. ``meta``: source, sequence, kitti_track_id, type, frames, sensor,
-    and ``ego_poses`` (per frame, velodyne frame t -> frame 0 of the sequence, 4x4 lists)
-    when oxts are present. Track ids are ``"SSSS_TTTT"``.
+
+def extract_tracks(seq: KittiTrackingSequence, classes=("car", "van"),
+                   crop: CropConfig | None = None, min_points: int = 0,
+                   types=None) -> list[Track]:
+    """Tracks of one sequence: :func:`seqshape.data.extract.extract_tracks` (generic schema,
+    crop by :func:`seqshape.data.crop.crop_vehicle`) plus the KITTI meta keys callers use.
+
+    ``classes``: seqshape classes (KITTI Car -> car, Van -> van, Truck -> truck); ``types``:
+    the same by KITTI type (overrides ``classes``). Track ids are ``"SSSS_TTTT"``; ``meta``
+    adds ``sequence``, ``kitti_track_id`` (int) and ``type`` (the KITTI type) to the generic
+    keys (``frames``, ``ego_poses`` when oxts cover the track's frames, ...).
     """
-    wanted = set(types) if types is not None else None
-    calib = seq.calib
-    ego = seq.ego_poses
-    if ego is not None and len(ego) < (max(seq.labels_by_frame, default=-1) + 1):
-        log.warning("%s: oxts has %d rows but labels reach frame %d; ego poses dropped",
-                    oxts_path(seq.root, seq.sequence), len(ego), max(seq.labels_by_frame))
-        ego = None
-    per_track: dict[int, list[tuple[int, np.ndarray, np.ndarray, np.ndarray, str]]] = {}
-    for frame in sorted(seq.labels_by_frame):
-        boxes = [lab for lab in seq.labels_by_frame[frame]
-                 if lab.track_id >= 0 and (wanted is None or lab.type in wanted)]
-        if not boxes:
-            continue
-        scan = seq.velodyne(frame)
-        for lab in boxes:
-            pose, size = label_to_pose(lab, calib)
-            pts = crop_box(scan, pose, size, margin, ground_height if remove_ground else None)
-            per_track.setdefault(lab.track_id, []).append((frame, pts, pose, size, lab.type))
-    tracks = []
-    for tid in sorted(per_track):
-        rows = per_track[tid]
-        if max(len(r[1]) for r in rows) < min_points:
-            continue
-        frames = [r[0] for r in rows]
-        meta = {"source": "kitti-tracking", "sequence": seq.sequence, "kitti_track_id": tid,
-                "type": rows[0][4], "frames": frames, "sensor": "hdl64",
-                "root": str(seq.root)}
-        if ego is not None:
-            meta["ego_poses"] = ego[frames].tolist()
-        tracks.append(Track(
-            track_id=f"{seq.sequence}_{tid:04d}", points=[r[1] for r in rows],
-            poses=np.stack([r[2] for r in rows]), complete=None,
-            size=np.median(np.stack([r[3] for r in rows]), axis=0),
-            timestamps=np.array(frames, dtype=np.float64) / FRAME_RATE_HZ, meta=meta))
-    log.info("sequence %s: %d tracks extracted", seq.sequence, len(tracks))
+    from seqshape.data.extract import extract_tracks as generic
+
+    if types is not None:
+        classes = kitti_classes(types)
+    tracks = generic(seq, classes=classes, crop=crop, min_points=min_points)
+    for tr in tracks:
+        tr.meta.update(sequence=seq.sequence, kitti_track_id=int(tr.meta["object_id"]),
+                       type=tr.meta["category"])
     return tracks

@@ -1,8 +1,8 @@
 """``seqshape show-scene``: one frame with its amodal ground truth and a bird's-eye view.
 
 Left: the rendered image with every KINS instance's visible mask filled, its amodal outline
-drawn, and ``cluster.order`` (KINS ``oco_id.ico_id``; order 1 is the front of its cluster)
-written on it. Right: the LiDAR sweep from above (colour = height) with the label_02 boxes and
+drawn, and ``cluster.order`` (KINS ``oco_id.ico_id``; order 1 is the front of its cluster,
+``0.0`` an instance that overlaps no other) written on it. Right: the LiDAR sweep from above (colour = height) with the label_02 boxes and
 track ids, and the camera's field of view.
 """
 
@@ -32,15 +32,16 @@ def _palette(i: int) -> np.ndarray:
 def _draw_image(ax, image: np.ndarray, anns: list[dict]) -> None:
     import cv2
 
-    from seqshape.amodal.kins import rle_to_mask
+    from seqshape.amodal.kins import segm_to_mask
 
     img = image.astype(np.float64) / 255.0
+    h, w = image.shape[:2]
     outlines = []
     for ann in anns:
-        c = _palette(ann["track_id"])
-        vis = rle_to_mask(ann["i_segm"])
+        c = _palette(int(ann.get("track_id", 0)))
+        vis = segm_to_mask(ann["i_segm"], h, w)
         img[vis] = 0.45 * img[vis] + 0.55 * c
-        amodal = rle_to_mask(ann["a_segm"]).astype(np.uint8)
+        amodal = segm_to_mask(ann["a_segm"], h, w).astype(np.uint8)
         contours, _ = cv2.findContours(amodal, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         outlines.append((contours, c, vis, ann))
     ax.imshow(np.clip(img, 0, 1))
@@ -56,7 +57,7 @@ def _draw_image(ax, image: np.ndarray, anns: list[dict]) -> None:
     ax.set_axis_off()
 
 
-def _draw_bev(ax, points: np.ndarray, boxes, calib, extent: float) -> None:
+def _draw_bev(ax, points: np.ndarray, boxes, camera, extent: float) -> None:
     from seqshape.geometry import box_corners
 
     sel = (points[:, 0] > -10) & (points[:, 0] < extent) & (np.abs(points[:, 1]) < extent * 0.6)
@@ -74,8 +75,8 @@ def _draw_bev(ax, points: np.ndarray, boxes, calib, extent: float) -> None:
         ax.plot([-pose[1], -front[1]], [pose[0], front[0]], "-", color=col, lw=1.0)
         ax.text(-pose[1], pose[0], str(tid), fontsize=7, color="black", ha="center",
                 clip_on=True)
-    w = calib.width
-    fx, cx = calib.P2[0, 0], calib.P2[0, 2]
+    w = camera.width
+    fx, cx = camera.K[0, 0], camera.K[0, 2]
     for u in (0.0, w - 1.0):  # field-of-view rays (velodyne y = -camera x)
         lateral = (cx - u) / fx
         ax.plot([0, -lateral * extent], [0, extent], "--", color="grey", lw=0.8)
@@ -97,7 +98,7 @@ def draw_scene_frame(root: Path, sequence: str, frame: int, out: Path, extent: f
 
     from seqshape._io import atomic_write_bytes
     from seqshape.amodal.kins import annotations_by_image, read_kins
-    from seqshape.data.kitti import KittiTrackingSequence, label_to_pose
+    from seqshape.data.kitti import KittiTrackingSequence
     from seqshape.errors import DataError
 
     seq = KittiTrackingSequence(root, sequence)
@@ -116,17 +117,14 @@ def draw_scene_frame(root: Path, sequence: str, frame: int, out: Path, extent: f
     by_image = annotations_by_image(doc)
     image_id = next((im["id"] for im in doc["images"] if im.get("frame", im["id"]) == frame), None)
     anns = by_image.get(image_id, [])
-    boxes = []
-    for lab in seq.frame_labels(frame):
-        pose, size = label_to_pose(lab, seq.calib)
-        boxes.append((lab.track_id, pose, size))
+    boxes = [(int(b.track_id), b.pose, b.size) for b in seq.boxes(frame)]
     fig = plt.figure(figsize=(16, 5.2))
     ax_img = fig.add_axes([0.01, 0.05, 0.70, 0.9])
     ax_bev = fig.add_axes([0.75, 0.08, 0.23, 0.86])
     _draw_image(ax_img, image[:, :, ::-1], anns)
     ax_img.set_title(f"{root.name} sequence {seq.sequence} frame {frame}: visible masks filled, "
                      f"amodal outlines, occlusion cluster.order", fontsize=9)
-    _draw_bev(ax_bev, seq.velodyne(frame), boxes, seq.calib, extent)
+    _draw_bev(ax_bev, seq.points(frame), boxes, seq.camera(), extent)
     ax_bev.set_title("LiDAR (grey: ground, colour: z) and label_02 boxes", fontsize=9)
     import io
 
