@@ -1,14 +1,36 @@
-"""The `Vehicle` record shared by procedural and user-supplied vehicles."""
+"""The `Vehicle` record shared by procedural and user-supplied vehicles, and its label codes."""
 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
 
 KINDS = ("sedan", "hatchback", "suv", "van", "pickup")
+
+#: seqshape's vehicle classes, smallest first. Kept equal to
+#: ``seqshape.data.sequence.VEHICLE_CLASSES`` (a test checks it); it is repeated here so that
+#: the vehicles package does not import the data package.
+VEHICLE_CLASSES = ("car", "van", "truck", "bus", "trailer")
+
+# Per-face material labels (`Vehicle.face_labels`, uint8). A raycaster uses them to treat the
+# surfaces differently: glass lets rays through, tyres and trim are dark (low reflectivity),
+# lamps and number plates are retro-reflective, interior parts are only seen through glass.
+BODY = 0       #: painted body panels (metal or painted plastic)
+GLASS = 1      #: windows (windshield, side and rear glass, glass roofs)
+TYRE = 2       #: tyre rubber
+RIM = 3        #: wheel rims / hub caps (metal)
+TRIM = 4       #: unpainted dark plastic: lower bumpers, cladding, mirrors' arms, roof rails,
+#: grilles, chassis, frame rails, fuel tanks
+LAMP = 5       #: head / tail lamps (retro-reflective)
+INTERIOR = 6   #: seats and dashboard inside the cabin (closed, only visible through glass)
+CARGO = 7      #: load platforms and trailer decks
+
+#: code -> name of every face label.
+FACE_LABELS = {BODY: "body", GLASS: "glass", TYRE: "tyre", RIM: "rim", TRIM: "trim",
+               LAMP: "lamp", INTERIOR: "interior", CARGO: "cargo"}
 
 
 @dataclass
@@ -19,14 +41,27 @@ class Vehicle:
         vehicle_id: unique, filesystem-safe identifier (e.g. ``proc-0007-sedan``).
         mesh: triangle mesh in the canonical vehicle frame: the centre of its axis-aligned
             bounding box (wheels included) at the origin, x forward, y left, z up, metres.
-        kind: ``"sedan" | "hatchback" | "suv" | "van" | "pickup" | "user"``.
-        source: ``"procedural:<kind>:<seed>"`` or the path of the file it was loaded from.
+        kind: fine kind. Original procedural kinds ``"sedan" | "hatchback" | "suv" | "van" |
+            "pickup"``, fleet kinds (`seqshape.vehicles.FLEET_KINDS`, e.g. ``"estate"``,
+            ``"box_truck"``) or ``"user"``.
+        source: ``"procedural:<kind>:<seed>"``, ``"fleet:<kind>:<seed>"`` or the path of the
+            file it was loaded from; `seqshape.vehicles.vehicle_from_source` rebuilds the
+            first two.
+        cls: vehicle class, one of `VEHICLE_CLASSES` (None: unknown, e.g. a user mesh).
+        face_labels: (F,) uint8 material label of every face of ``mesh`` (codes in
+            `FACE_LABELS`), or None when unknown. Faces keep their order through
+            `centre_on_bbox`, so the labels stay valid.
+        box_size: (3,) length, width, height (m) of the box an annotator draws: the mesh's
+            extents without the side mirrors (None: same as `size`).
     """
 
     vehicle_id: str
     mesh: trimesh.Trimesh
     kind: str
     source: str
+    cls: str | None = None
+    face_labels: np.ndarray | None = field(default=None, repr=False, compare=False)
+    box_size: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def size(self) -> np.ndarray:
@@ -45,7 +80,10 @@ def safe_id(text: str) -> str:
 
 
 def centre_on_bbox(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """Translate ``mesh`` in place so that its bounding-box centre is the origin; return it."""
+    """Translate ``mesh`` in place so that its bounding-box centre is the origin; return it.
+
+    Vertices and faces keep their order, so per-face labels stay valid.
+    """
     lo, hi = mesh.bounds
     mesh.apply_translation(-(lo + hi) / 2.0)
     return mesh
