@@ -5,7 +5,8 @@ import importlib
 
 import pytest
 
-MODULES = ["seqshape.geometry", "seqshape.errors", "seqshape.camera", "seqshape.data.av2", "seqshape.data.nuscenes"]
+MODULES = ["seqshape.geometry", "seqshape.errors", "seqshape.camera", "seqshape.data.av2", "seqshape.data.nuscenes",
+           "seqshape.scripts.tracks"]
 
 
 @pytest.mark.parametrize("name", MODULES)
