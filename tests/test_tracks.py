@@ -187,6 +187,13 @@ def test_splits_follow_the_log(logs, tmp_path):
     _run(root, tmp_path / "h", "--val-fraction", "0.5")
     for e in _manifest(tmp_path / "h")[0]:
         assert e["split"] == log_split("fake", e["log"], 0.5)
+    # --split-by track: the rule runs per vehicle, so one log's tracks can land in both splits
+    _run(root, tmp_path / "t", "--val-fraction", "0.5", "--split-by", "track")
+    entries = _manifest(tmp_path / "t")[0]
+    for e in entries:
+        tr = TrackDataset(tmp_path / "t").get(e["track_id"])
+        assert e["split"] == log_split("fake", f"{e['log']}:{tr.meta['object_id']}", 0.5)
+        assert e["split"] == tr.meta["split"]
     # the hash rule is stable and spreads logs over both splits
     splits = [log_split("av2", f"log{i}", 0.2) for i in range(1000)]
     assert 150 < splits.count("val") < 250
@@ -319,6 +326,9 @@ def test_reference_becomes_the_complete_shape(logs, tmp_path, monkeypatch):
     assert a.meta["reference"] == {"kind": "accumulated", "n_frames": 3, "n_points": 50}
     assert b.complete is None and b.meta["reference"]["error"] == "too few points"
     assert _manifest(out)[1]["reference_points"] == 50
+    # the manifest says which tracks can be trained on
+    assert [e["has_complete"] for e in _manifest(out)[0]] == [True, False]
+    assert [t.track_id for t in TrackDataset(out).with_complete()] == [a.track_id]
 
 
 def test_real_reference(logs, tmp_path):

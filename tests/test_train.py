@@ -182,3 +182,20 @@ def test_torchrun_two_processes(dataset, tmp_path):
     conf = json.loads((out / "config.json").read_text())
     assert conf["world_size"] == 2
     assert Estimator.from_checkpoint(out / "model.pt").recurrent
+
+
+def test_real_tracks_without_a_reference_are_left_out_of_training(tmp_path):
+    from seqshape.data import Track, TrackDataset, write_dataset
+    from seqshape.errors import DataError
+    from seqshape.train.trainer import _trainable
+
+    def track(tid, complete):
+        return Track(tid, [np.zeros((5, 3), np.float32)], np.zeros((1, 4)), complete,
+                     np.array([4.0, 1.8, 1.5]), np.zeros(1), {"split": "train"})
+
+    ds = write_dataset(tmp_path / "d", [track("a", np.zeros((8, 3))), track("b", None)])
+    entries = [dict(e, has_complete=e["track_id"] == "a") for e in ds.entries]
+    keep = _trainable(TrackDataset(ds.path, _entries=entries), "train")
+    assert keep.track_ids == ["a"]
+    with pytest.raises(DataError, match="no train track has a complete shape"):
+        _trainable(TrackDataset(ds.path, _entries=entries[1:]), "train")

@@ -90,6 +90,13 @@ class TrackDataset:
             raise DataError(self.path, f"no tracks in split {name!r} (splits here: {splits})")
         return TrackDataset(self.path, _entries=entries)
 
+    def with_complete(self) -> TrackDataset:
+        """The tracks that have a complete shape, as a dataset view (manifests of real tracks
+        mark the others with ``"has_complete": false``; entries without the key count as
+        having one, as every synthetic track does)."""
+        return TrackDataset(self.path, _entries=[e for e in self.entries
+                                                 if e.get("has_complete", True)])
+
     def __repr__(self) -> str:
         return f"TrackDataset({str(self.path)!r}, {len(self)} tracks)"
 

@@ -34,6 +34,7 @@ CONFIG_FILE = "tracks.json"
 LOGS_DIR = "logs"
 EXTRACTOR_VERSION = 1
 SPLITS = ("train", "val")
+SPLIT_BY = ("log", "track")
 
 
 # ----------------------------------------------------------------------------- settings
@@ -53,6 +54,7 @@ class TracksConfig:
     reference_points: int = 2048
     val_fraction: float = 0.2
     split: str | None = None
+    split_by: str = "log"
 
     def validate(self) -> None:
         from seqshape.errors import ConfigError
@@ -63,6 +65,8 @@ class TracksConfig:
             raise ConfigError(f"--val-fraction must be in [0, 1], got {self.val_fraction}")
         if self.split not in (None, *SPLITS):
             raise ConfigError(f"--split must be one of {SPLITS}, got {self.split!r}")
+        if self.split_by not in SPLIT_BY:
+            raise ConfigError(f"--split-by must be one of {SPLIT_BY}, got {self.split_by!r}")
         if self.reference_points < 1:
             raise ConfigError(f"--reference-points must be >= 1, got {self.reference_points}")
         self.crop()  # margin and ground mode
@@ -80,6 +84,8 @@ class TracksConfig:
 def log_split(dataset: str, log: str, val_fraction: float, forced: str | None = None) -> str:
     """``"val"`` when the SHA-1 of ``dataset:log`` (as a fraction of 2**64) is below
     ``val_fraction``, else ``"train"``; ``forced`` wins. Stable across runs and machines.
+    With ``--split-by track`` the same rule runs on ``dataset:log:object`` (pass
+    ``f"{log}:{object_id}"`` as ``log``).
 
     >>> log_split("av2", "x", 0.0), log_split("av2", "x", 1.0), log_split("av2", "x", 0.5, "val")
     ('train', 'val', 'val')
@@ -254,7 +260,8 @@ def _extract_log(job: LogJob, t0: float) -> LogResult:
     split = log_split(cfg.dataset, job.log, cfg.val_fraction, cfg.split)
     entries, warnings, no_ref = [], [], []
     for tr in tracks:
-        tr.meta["split"] = split
+        tr.meta["split"] = split if cfg.split_by == "log" or cfg.split else log_split(
+            cfg.dataset, f"{job.log}:{tr.meta['object_id']}", cfg.val_fraction)
         if cfg.reference:
             msg = _add_reference(tr, cfg.reference_points)
             if msg:
@@ -263,7 +270,8 @@ def _extract_log(job: LogJob, t0: float) -> LogResult:
         file = f"tracks/{tr.track_id}.npz"
         save_track(out / file, tr)
         entries.append({**manifest_entry(tr, file), "class": tr.meta["class"],
-                        "dataset": cfg.dataset, "log": job.log})
+                        "dataset": cfg.dataset, "log": job.log,
+                        "has_complete": tr.complete is not None})
     if no_ref:
         warnings.append(f"log {job.log}: {len(no_ref)} of {len(tracks)} tracks have no "
                         f"accumulated reference (complete is None), e.g. {no_ref[0]}")
@@ -432,6 +440,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--val-fraction", type=float, default=0.2,
                         help="share of logs in the val split, by a stable hash of the log "
                              "name (default 0.2)")
+    parser.add_argument("--split-by", choices=SPLIT_BY, default="log",
+                        help="what --val-fraction splits: whole logs (default; no vehicle is in "
+                             "both splits, nor any log) or single tracks (to fine-tune and "
+                             "evaluate on held-out vehicles of the same logs)")
     parser.add_argument("--split", choices=SPLITS, default=None,
                         help="put every log into this split instead (e.g. one log to "
                              "evaluate on)")
@@ -450,7 +462,8 @@ def run(args: argparse.Namespace) -> int:
                           classes=parse_classes(args.classes), min_points=args.min_points,
                           margin=args.margin, ground=args.ground, reference=args.reference,
                           reference_points=args.reference_points,
-                          val_fraction=args.val_fraction, split=args.split)
+                          val_fraction=args.val_fraction, split=args.split,
+                          split_by=args.split_by)
     s = extract_dataset(config, args.out, parse_sequences(args.sequence), shard, args.workers)
     print_summary(s, args.out)
     return 1 if s.failed else 0

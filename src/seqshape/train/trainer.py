@@ -52,6 +52,19 @@ from seqshape.train.runlog import RunLog
 log = logging.getLogger(__name__)
 
 
+def _trainable(split: TrackDataset, name: str) -> TrackDataset:
+    """The tracks of a split that have a complete shape (real tracks without an accumulated
+    reference are left out, with a warning); DataError when none is left."""
+    keep = split.with_complete()
+    if len(keep) < len(split):
+        log.warning("%s: %d of %d %s tracks have no complete shape (no accumulated reference) "
+                    "and are left out of training", split.path, len(split) - len(keep),
+                    len(split), name)
+    if not len(keep):
+        raise DataError(split.path, f"no {name} track has a complete shape to train against")
+    return keep
+
+
 def place_complete(complete: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
     """Canonical shapes (F, M, 3) to the sensor frame with poses (F, 4): ``R c + t``."""
     c, s = torch.cos(poses[:, 3])[:, None], torch.sin(poses[:, 3])[:, None]
@@ -80,11 +93,12 @@ class Trainer:
         torch.set_num_threads(cfg.threads)
         torch.use_deterministic_algorithms(True, warn_only=True)
         dataset = TrackDataset(self.data)
-        self.train_tracks = dataset.split("train")
+        self.train_tracks = _trainable(dataset.split("train"), "train")
         try:
-            self.val_tracks: TrackDataset | None = dataset.split("val")
+            self.val_tracks: TrackDataset | None = _trainable(dataset.split("val"), "val")
         except DataError:
-            log.warning("%s has no val split: validation is skipped", self.data)
+            log.warning("%s has no val split (with complete shapes): validation is skipped",
+                        self.data)
             self.val_tracks = None
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed % 2**32)  # noqa: NPY002 - seeds code that uses the global RNG
