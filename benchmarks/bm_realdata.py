@@ -34,23 +34,30 @@ def _f(v, digits: int = 1) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
 
 
-def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> None:
+def _quiet(argv: list[str]) -> int:
+    """``seqshape ARGV`` with its printed report swallowed (the tables below say it shorter)."""
+    import contextlib
+    import io
+
     from seqshape.cli import main
 
+    with contextlib.redirect_stdout(io.StringIO()):
+        return main(argv)
+
+
+def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> None:
     argv = ["tracks", "--dataset", dataset, "--root", str(root), "--out", str(out),
             "--split-by", split_by, "--val-fraction", "0.3" if split_by == "track" else "0"]
     for s in sequences or ():
         argv += ["--sequence", s]
     if split_by == "log":
         argv += ["--split", "val"]
-    if main(argv) != 0:
+    if _quiet(argv) != 0:
         sys.exit(f"seqshape tracks failed on {root}")
 
 
 def evaluate(data: Path, out: Path, checkpoint: str, split: str) -> dict:
-    from seqshape.cli import main
-
-    if main(["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
+    if _quiet(["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
              "--split", split, "--workers", "1", "--emd-every", "0", "--view", "none"]) != 0:
         sys.exit(f"seqshape evaluate failed on {data}")
     return json.loads((out / "metrics.json").read_text())
@@ -106,11 +113,9 @@ def main() -> int:
     tables(evaluate(work / "tracks", work / "eval", args.checkpoint, "all"),
            f"{args.dataset}: {args.checkpoint} weights, all frames")
     if args.finetune_steps > 0:
-        from seqshape.cli import main as cli
-
         extract(args.dataset, args.root, work / "ft_tracks", args.sequence, "track")
         run = work / "ft_run"
-        if cli(["train", "--data", str(work / "ft_tracks"), "--model", "sequential", "--init",
+        if _quiet(["train", "--data", str(work / "ft_tracks"), "--model", "sequential", "--init",
                 args.checkpoint, "--stage-steps", f"0,0,{args.finetune_steps}", "--lr", "2e-4",
                 "--no-tensorboard", "--threads", "1", "--out", str(run)]) != 0:
             sys.exit("fine-tuning failed")
