@@ -10,13 +10,27 @@ import trimesh
 
 from seqshape.errors import ConfigError, DataError
 from seqshape.vehicles import (
+    BODY,
+    CLASS_MIX,
+    DEFAULT_MIX,
+    FACE_LABELS,
+    FLEET_KINDS,
+    GLASS,
+    INTERIOR,
     KINDS,
+    TYRE,
+    VEHICLE_CLASSES,
+    fleet_library,
+    fleet_vehicle,
+    kind_quotas,
     load_vehicle,
     load_vehicle_folder,
     procedural_vehicle,
     sample_outer_surface,
+    vehicle_from_source,
     vehicle_library,
 )
+from seqshape.vehicles.fleet_stats import dimension_bounds
 from seqshape.vehicles.io import canonical_rotation
 
 # ---------------------------------------------------------------- procedural bodies
@@ -228,3 +242,178 @@ def test_folder_loading(tmp_path):
                                                 "user-model1-models-model_normalized"]
     for v in vehicles:
         assert abs(v.size[0] - 4.5) < 1e-9 and v.size[2] < v.size[0]
+
+
+# ---------------------------------------------------------------- the fleet (issue 15)
+
+# sha256 of the rounded vertices and faces of vehicle_library(6, seed=0), computed before the
+# fleet generator was added: the original procedural meshes must never change.
+_LIBRARY_HASH = "7c1407a5e0bab5faf110a65f17f46dc9346f925455030ab35b4616702edaefd8"
+
+
+def test_original_library_meshes_are_unchanged():
+    import hashlib
+
+    h = hashlib.sha256()
+    lib = vehicle_library(6, seed=0)
+    for v in lib:
+        h.update(np.round(v.mesh.vertices, 9).tobytes())
+        h.update(v.mesh.faces.astype(np.int64).tobytes())
+    assert h.hexdigest() == _LIBRARY_HASH
+    # they now carry a class and body / tyre labels too (no glass)
+    for v in lib:
+        assert v.cls == ("van" if v.kind == "van" else "car")
+        assert v.face_labels.shape == (len(v.mesh.faces),)
+        assert set(np.unique(v.face_labels)) == {BODY, TYRE}
+        assert v.mesh.metadata["face_labels"] is v.face_labels
+
+
+def test_vehicle_classes_match_the_data_package():
+    from seqshape.data.sequence import VEHICLE_CLASSES as DATA_CLASSES
+
+    assert VEHICLE_CLASSES == DATA_CLASSES
+    assert set(FLEET_KINDS.values()) == set(VEHICLE_CLASSES)
+
+
+@pytest.mark.parametrize("kind", list(FLEET_KINDS))
+def test_every_fleet_kind_is_closed_labelled_and_in_its_real_size_range(kind):
+    lo, hi = dimension_bounds(kind)
+    for seed in (0, 1):
+        v = fleet_vehicle(kind, seed)
+        m = v.mesh
+        assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+        np.testing.assert_allclose(m.bounds.mean(axis=0), 0.0, atol=1e-9)
+        assert (500 if kind == "car_trailer" else 2000) <= len(m.faces) <= 20000
+        assert v.kind == kind and v.cls == FLEET_KINDS[kind]
+        assert v.source == f"fleet:{kind}:{seed}"
+        # the annotator's box (mirrors excluded) lies in the range of the listed real models
+        length, width, height = v.box_size
+        assert lo[0] - 0.05 <= length <= hi[0] + 0.05, (length, lo[0], hi[0])
+        assert lo[1] - 0.04 <= width <= hi[1] + 0.04, (width, lo[1], hi[1])
+        assert lo[2] - 0.05 <= height <= hi[2] + 0.05, (height, lo[2], hi[2])
+        # and it is the drawn size (roof rails included in the height)
+        p = m.metadata["params"]
+        drawn = p["height"] + (0.06 if p.get("roof_rails") else 0.0)
+        np.testing.assert_allclose([length, height], [p["length"], drawn], atol=0.03)
+        assert np.all(v.box_size <= v.size + 1e-9) and v.size[1] < width + 0.8
+        # one label per face, valid codes, tyres everywhere, glass on cars, vans and buses
+        assert v.face_labels.dtype == np.uint8 and v.face_labels.shape == (len(m.faces),)
+        assert set(np.unique(v.face_labels)) <= set(FACE_LABELS)
+        assert m.metadata["face_labels"] is v.face_labels
+        assert np.any(v.face_labels == TYRE)
+        if v.cls in ("car", "van", "bus"):
+            assert np.any(v.face_labels == GLASS)
+        # the wheels stand on the ground: the lowest vertices are tyres
+        low = m.triangles_center[:, 2] < m.bounds[0, 2] + 0.03
+        assert np.all(v.face_labels[low] == TYRE)
+
+
+def test_fleet_vehicles_are_deterministic_and_rebuilt_from_their_source():
+    a, b = fleet_vehicle("estate", 5), fleet_vehicle("estate", 5)
+    np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+    np.testing.assert_array_equal(a.face_labels, b.face_labels)
+    c = fleet_vehicle("estate", 6)
+    assert not np.allclose(a.size, c.size)
+    r = vehicle_from_source(a.source)
+    np.testing.assert_array_equal(r.mesh.vertices, a.mesh.vertices)
+    old = vehicle_from_source("procedural:van:3")
+    np.testing.assert_array_equal(old.mesh.vertices, procedural_vehicle("van", 3).mesh.vertices)
+    # a class picks a kind of that class from the seed, and the source names the fine kind
+    t = fleet_vehicle("truck", 11)
+    assert t.cls == "truck" and t.kind in ("box_truck", "tractor", "flatbed")
+    np.testing.assert_array_equal(vehicle_from_source(t.source).mesh.vertices,
+                                  t.mesh.vertices)
+    for bad in ("procedural:sedan", "fleet:sedan:x", "/some/file.obj", "fleet:tank:1"):
+        with pytest.raises(ConfigError):
+            vehicle_from_source(bad)
+    with pytest.raises(ConfigError):
+        fleet_vehicle("tank", 0)
+    with pytest.raises(ConfigError):
+        fleet_vehicle("sedan", -1)
+
+
+def _first_hit_label(v, origin, direction):
+    from seqshape.vehicles.surface import ray_intersector
+
+    isect = ray_intersector(v.mesh)
+    tri = isect.intersects_first(np.array([origin], float), np.array([direction], float))[0]
+    assert tri >= 0, "the ray missed the vehicle"
+    return int(v.face_labels[tri])
+
+
+@pytest.mark.parametrize("kind,seed", [("sedan", 2), ("suv", 4), ("hatchback", 1),
+                                       ("panel_van", 3), ("pickup", 0)])
+def test_car_glass_is_above_the_beltline_and_in_the_side_windows(kind, seed):
+    v = fleet_vehicle(kind, seed)
+    p, t = v.mesh.metadata["params"], v.mesh.metadata["build_to_canonical"]
+    centres = v.mesh.triangles_center - t  # build frame: z up from the ground
+    glass = centres[v.face_labels == GLASS]
+    assert glass[:, 2].min() > p["belt"] - 0.06  # the windshield's base meets the cowl
+    assert glass[:, 2].max() < p["height"] + 0.01
+    # a ray from the left at mid-window height through the first side window hits glass;
+    # the same ray 25 cm below the beltline hits the painted door
+    a, b = p["windows"][0]
+    x = p["length"] - 0.5 * (a + b) + t[0]
+    z_win = p["belt"] + 0.12 + t[2]
+    assert _first_hit_label(v, [x, 10.0, z_win], [0, -1, 0]) == GLASS
+    assert _first_hit_label(v, [x, 10.0, p["belt"] - 0.25 + t[2]], [0, -1, 0]) == BODY
+    # looking down the windshield from ahead and above hits glass, the hood below it paint
+    s_ws = p["hood_len"] + 0.25 * (p["height"] - p["belt"]) / np.tan(np.radians(p["ws_deg"]))
+    xw = p["length"] - s_ws + t[0]
+    assert _first_hit_label(v, [xw, 0.0, 10.0], [0, 0, -1]) == GLASS
+    assert _first_hit_label(v, [p["length"] - p["hood_len"] * 0.5 + t[0], 0.0, 10.0],
+                            [0, 0, -1]) == BODY
+
+
+def test_bus_glass_sits_above_the_floor_and_the_windshield_faces_forward():
+    v = fleet_vehicle("city_bus", 2)
+    p, t = v.mesh.metadata["params"], v.mesh.metadata["build_to_canonical"]
+    c = v.mesh.triangles_center - t
+    n = v.mesh.face_normals
+    glass = v.face_labels == GLASS
+    side = glass & (np.abs(n[:, 1]) > 0.9)
+    assert side.sum() > 50 and c[side, 2].min() > p["belt"] - 0.02
+    front = glass & (n[:, 0] > 0.7)
+    assert front.sum() > 5 and c[front, 2].min() > p["windshield_bottom"] - 0.02
+    assert c[front, 0].min() > p["length"] - 0.5  # the windshield is at the front end
+    assert _first_hit_label(v, [20.0, 0.0, p["windshield_bottom"] + 0.5 + t[2]],
+                            [-1, 0, 0]) == GLASS
+
+
+@pytest.mark.parametrize("kind", ["mpv", "city_bus", "box_truck"])
+def test_interior_is_hidden_from_the_outer_surface(kind):
+    v = fleet_vehicle(kind, 1)
+    assert np.any(v.face_labels == INTERIOR)
+    pts = sample_outer_surface(v.mesh, n=1500, seed=0)
+    _, _, tri = trimesh.proximity.closest_point(v.mesh, pts)
+    assert not np.any(v.face_labels[tri] == INTERIOR)
+
+
+def test_fleet_library_mix_quotas_and_determinism():
+    q = kind_quotas(1000)
+    assert sum(q.values()) == 1000
+    for kind, share in DEFAULT_MIX.items():
+        assert abs(q[kind] - 1000 * share) <= 1
+    per_class = {c: sum(n for k, n in q.items() if FLEET_KINDS[k] == c) for c in CLASS_MIX}
+    assert abs(per_class["car"] - 780) <= 2 and abs(per_class["bus"] - 30) <= 2
+    a, b = fleet_library(12, seed=3), fleet_library(12, seed=3)
+    assert [v.vehicle_id for v in a] == [v.vehicle_id for v in b]
+    for va, vb in zip(a, b, strict=True):
+        np.testing.assert_array_equal(va.mesh.vertices, vb.mesh.vertices)
+    assert a[4].vehicle_id == f"fleet-0004-{a[4].kind}"
+    quotas = kind_quotas(12)
+    for kind, count in quotas.items():
+        assert sum(v.kind == kind for v in a) == count
+    only = fleet_library(6, seed=0, mix={"bus": 1.0, "car_trailer": 1.0})
+    assert {v.cls for v in only} == {"bus", "trailer"}
+    assert sum(v.kind == "car_trailer" for v in only) == 3
+    us, eu = kind_quotas(1000, "us"), kind_quotas(1000, "eu")
+    assert us["pickup"] > 5 * eu["pickup"] and eu["hatchback"] > 4 * us["hatchback"]
+    assert sum(us.values()) == sum(eu.values()) == 1000
+    with pytest.raises(ConfigError):
+        fleet_library(3, mix="mars")
+    with pytest.raises(ConfigError):
+        fleet_library(3, mix={"tank": 1.0})
+    with pytest.raises(ConfigError):
+        fleet_library(3, mix={"car": -1.0})
+    assert fleet_library(0) == []

@@ -24,7 +24,7 @@ import numpy as np
 import trimesh
 
 from seqshape.errors import ConfigError
-from seqshape.vehicles.base import KINDS, Vehicle, centre_on_bbox
+from seqshape.vehicles.base import BODY, KINDS, TYRE, Vehicle, centre_on_bbox
 
 log = logging.getLogger(__name__)
 
@@ -310,8 +310,14 @@ def procedural_vehicle(kind: str, seed: int) -> Vehicle:
     params = sample_params(kind, rng)
     mesh = build_vehicle_mesh(params)
     mesh.metadata["params"] = asdict(params)
+    # faces: the body first, then the four tyres (no glass on these bodies)
+    n_tyre = sum(len(w.faces) for w in _wheels(params))
+    labels = np.full(len(mesh.faces), BODY, dtype=np.uint8)
+    labels[len(labels) - n_tyre:] = TYRE
+    mesh.metadata["face_labels"] = labels
     return Vehicle(vehicle_id=f"proc-s{int(seed)}-{kind}", mesh=mesh, kind=kind,
-                   source=f"procedural:{kind}:{int(seed)}")
+                   source=f"procedural:{kind}:{int(seed)}",
+                   cls="van" if kind == "van" else "car", face_labels=labels)
 
 
 def vehicle_library(n: int, seed: int = 0, kinds: Sequence[str] | None = None) -> list[Vehicle]:
