@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from seqshape.errors import DataError
+from seqshape.data.windows import points_length
+from seqshape.errors import ConfigError, DataError
 from seqshape.model import Estimator, ModelConfig, ShapePoseNet
 from seqshape.model import estimator as estimator_module
 from seqshape.train.checkpoint import model_payload, save_payload
@@ -134,3 +135,206 @@ def test_from_pretrained_missing_is_clear(tmp_path, monkeypatch):
         Estimator.from_pretrained("baseline")
     save_payload(tmp_path / "sequential.pt", model_payload(_model(), {}, {}))
     assert Estimator.from_pretrained("sequential").recurrent
+
+
+# ---------------------------------------------------------------------- issue 15: scale, heading
+SCALED = ModelConfig(**{**TINY.to_dict(), "scale_norm": "length", "shape_frame": "canonical"})
+
+
+def _scaled_pair(recurrent=True):
+    """The same weights without and with ``scale_norm="length"``."""
+    torch.manual_seed(0)
+    plain = ShapePoseNet(ModelConfig(**{**SCALED.to_dict(), "scale_norm": "none"}), recurrent)
+    scaled = ShapePoseNet(SCALED, recurrent)
+    scaled.load_state_dict(plain.state_dict())
+    return plain, scaled
+
+
+def _car(rng, n=50, length=4.4, centre=(10.0, 2.0, -0.8)):
+    """Points of a car-sized box side (well under scale_ref = 6 m)."""
+    return (rng.uniform(-0.5, 0.5, (n, 3)) * [length, 1.8, 1.4] + centre).astype(np.float32)
+
+
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_scaled_model_equals_plain_model_on_cars(recurrent):
+    rng = np.random.default_rng(1)
+    plain, scaled = (Estimator(m) for m in _scaled_pair(recurrent))
+    for _ in range(3):
+        pts = [_car(rng), _car(rng, 30, 3.8, (5.0, -4.0, -1.0))]
+        for a, b in zip(plain.step(["a", "b"], pts), scaled.step(["a", "b"], pts), strict=True):
+            assert b.scale == a.scale == 1.0
+            assert np.array_equal(a.complete, b.complete) and np.array_equal(a.pose, b.pose)
+
+
+def test_scale_hints_override_the_points_estimate():
+    rng = np.random.default_rng(2)
+    _, net = _scaled_pair()
+    pts = [_car(rng, 60, 4.0)]
+    est = Estimator(net)
+    assert est.step(["a"], pts)[0].scale == 1.0                        # from the points
+    assert est.step(["a"], pts, sizes=[(12.0, 2.5, 3.0)])[0].scale == 2.0   # box hint
+    assert est.step(["a"], pts, sizes=[18.0])[0].scale == 3.0            # length hint
+    assert est.step(["a"], pts, classes=["bus"])[0].scale == pytest.approx(10.0 / 6.0)
+    assert est.step(["a"], pts, classes=["car"])[0].scale == 1.0
+    assert est.step(["a"], pts, sizes=[None], classes=[None])[0].scale == 1.0
+    # what the hint does is exactly the network run at that scale
+    ref = Estimator(net)
+    direct = net.eval()(torch.from_numpy(pts[0])[None, None], torch.tensor([[60]]),
+                        scale=torch.tensor([[2.0]]))
+    out = ref.step(["a"], pts, sizes=[12.0])[0]
+    np.testing.assert_allclose(out.complete, direct["complete"][0, 0].detach().numpy(),
+                               atol=1e-5)
+    with pytest.raises(ConfigError):
+        est.step(["a"], pts, classes=["tank"])
+    with pytest.raises(ConfigError):
+        est.step(["a"], pts, sizes=[-3.0])
+    with pytest.raises(ConfigError):
+        est.step(["a"], pts, sizes=[4.0, 5.0])
+
+
+def test_points_length_running_max_for_the_sequential_model_only():
+    """A long vehicle first seen end-on: the sequential estimator keeps the largest extent
+    seen so far, the per-frame baseline uses each frame's own."""
+    # a 12 m side and an end-on view, turned by 30 degrees: 101 evenly spaced points per edge,
+    # so the 1st-99th percentile extent along the vehicle is 0.98 of it
+    u = np.linspace(-0.5, 0.5, 101)
+    side = np.c_[12.0 * u, np.full(101, 1.25), np.zeros(101)]
+    end = np.c_[np.full(101, 6.0), 2.5 * u, np.zeros(101)]
+    turn = _rz(np.radians(30.0))[:3, :3]
+    long_side, end_on = ((p @ turn.T + [15.0, 4.0, -0.5]).astype(np.float32) for p in (side, end))
+    assert points_length(long_side) == pytest.approx(0.98 * 12.0, rel=0.01)
+    assert points_length(end_on) == pytest.approx(0.98 * 2.5, rel=0.01)
+    torch.manual_seed(0)
+    cfg = ModelConfig(**{**SCALED.to_dict(), "num_points": 128})
+    for recurrent, expected in ((True, 12.0), (False, 2.5)):
+        est = Estimator(ShapePoseNet(cfg, recurrent))
+        first = est.step(["bus"], [long_side])[0].scale
+        assert first == pytest.approx(0.98 * 12.0 / 6.0, rel=0.01)
+        later = est.step(["bus"], [end_on])[0].scale
+        assert later == pytest.approx(max(1.0, 0.98 * expected / 6.0), rel=0.01)
+        assert est.step(["bus"], [np.zeros((0, 3), np.float32)])[0].scale == later
+
+
+def test_scaled_estimator_is_equivariant():
+    """Twice the points and twice the hinted length: exactly twice the shape and centre."""
+    rng = np.random.default_rng(4)
+    pts = [_car(rng, 40, 7.0) for _ in range(3)]
+    a, b = Estimator(_scaled_pair()[1]), Estimator(_scaled_pair()[1])
+    for p in pts:
+        ea = a.step(["t"], [p], sizes=[8.0])[0]
+        eb = b.step(["t"], [2 * p], sizes=[16.0])[0]
+        assert eb.scale == 2 * ea.scale == pytest.approx(16.0 / 6.0)
+        assert np.array_equal(eb.complete, 2 * ea.complete)
+        assert np.array_equal(eb.pose[:3], 2 * ea.pose[:3]) and eb.pose[3] == ea.pose[3]
+
+
+def _fixed_yaw_model(yaw: float) -> ShapePoseNet:
+    """A network whose pose is (frame mean, ``yaw``) whatever it sees."""
+    net = _model()
+    with torch.no_grad():
+        net.pose_decoder[-1].weight.zero_()
+        net.pose_decoder[-1].bias.copy_(torch.tensor([0, 0, 0, np.cos(yaw), np.sin(yaw)]))
+    return net
+
+
+def _rz(a: float, t=(0.0, 0.0, 0.0)) -> np.ndarray:
+    m = np.eye(4)
+    m[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    m[:3, 3] = t
+    return m
+
+
+def _drive(speed: float, frames: int = 8):
+    """A vehicle driving at ``speed`` m/frame along 40 degrees in a fixed frame, seen from an
+    ego that drives along x at 0.5 m/frame with a 30 degree yaw: sensor-frame points and the
+    ego poses (sensor -> fixed)."""
+    rng = np.random.default_rng(5)
+    heading = np.radians(40.0)
+    out = []
+    for t in range(frames):
+        centre = np.array([20.0, 5.0, -0.5]) + speed * t * np.array([np.cos(heading),
+                                                                    np.sin(heading), 0])
+        world = _car(rng, 50, 4.4, centre)
+        ego = _rz(np.radians(30.0), (0.5 * t, 0.0, 0.0))
+        sensor = (np.linalg.inv(ego) @ np.c_[world, np.ones(len(world))].T).T[:, :3]
+        out.append((sensor.astype(np.float32), ego))
+    return out
+
+
+def test_moving_track_estimated_backwards_comes_out_forwards():
+    from seqshape.geometry import sensor_to_canonical
+
+    backwards = np.radians(40.0 + 180.0 - 30.0)  # sensor-frame yaw = fixed-frame 220 deg
+    flt, raw = Estimator(_fixed_yaw_model(backwards)), Estimator(_fixed_yaw_model(backwards))
+    flips = []
+    for pts, ego in _drive(speed=1.0):
+        e = flt.step(["v"], [pts], ego_poses=[ego])[0]
+        r = raw.step(["v"], [pts])[0]  # no ego poses: nothing known about motion
+        assert not r.flipped and r.pose[3] == pytest.approx(wrap(backwards))
+        flips.append(e.flipped)
+        if e.flipped:  # forwards in the fixed frame = 40 deg - 30 deg of the ego in sensor
+            assert e.pose[3] == pytest.approx(np.radians(10.0))
+            # same placed point set, the canonical shape turned by pi; same centre
+            assert np.array_equal(e.complete, r.complete)
+            np.testing.assert_array_equal(e.pose[:3], r.pose[:3])
+            turned = sensor_to_canonical(r.complete, r.pose) * [-1, -1, 1]
+            np.testing.assert_allclose(sensor_to_canonical(e.complete, e.pose), turned,
+                                       atol=1e-5)
+    # 2 m of fitted travel needs 3 frames at 1 m/frame: from then on every frame is fixed
+    assert flips == [False, False] + [True] * 6
+
+
+def wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def test_parked_and_forward_tracks_are_left_alone():
+    backwards = np.radians(40.0 + 180.0 - 30.0)
+    for yaw, speed in ((backwards, 0.0), (backwards, 0.1), (np.radians(10.0), 1.0)):
+        est = Estimator(_fixed_yaw_model(yaw))
+        for pts, ego in _drive(speed):
+            e = est.step(["v"], [pts], ego_poses=[ego])[0]
+            assert not e.flipped and e.pose[3] == pytest.approx(wrap(yaw))
+
+
+def test_static_sensor_uses_sensor_frame_motion():
+    from seqshape.model import HeadingConfig
+
+    rng = np.random.default_rng(6)
+    frames = [_car(rng, 50, 4.4, (10.0 + t, 3.0, -0.5)) for t in range(5)]  # drives along +x
+    est = Estimator(_fixed_yaw_model(np.pi), heading=HeadingConfig(static_sensor=True))
+    out = [est.step(["v"], [p])[0] for p in frames]
+    assert [e.flipped for e in out] == [False, False, True, True, True]
+    assert out[-1].pose[3] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_heading_vote_and_motion_line():
+    from seqshape.model.heading import HeadingConfig, HeadingFilter, motion_direction
+
+    flt = HeadingFilter(HeadingConfig(vote=True))
+    yaws = [0.1, 0.1, 0.1, 0.1 + np.pi, 0.1, 0.1]
+    flips = [flt.update(np.array([5.0, 0, 0, y]), None, True) for y in yaws]
+    assert flips == [False, False, False, True, False, False]
+    assert HeadingFilter(HeadingConfig()).update(np.array([5.0, 0, 0, 3.0]), None, True) is False
+    line = np.c_[np.arange(6) * 0.5, np.arange(6) * -0.5]
+    assert motion_direction(line, 1.5, 0.8) == pytest.approx(-np.pi / 4)
+    assert motion_direction(line[:3], 1.5, 0.8) is None  # 1.41 m: not enough travel
+    jitter = np.random.default_rng(0).normal(scale=1.0, size=(10, 2))
+    assert motion_direction(jitter, 1.5, 0.8) is None
+
+
+def test_bad_ego_pose_is_a_clear_error():
+    est = Estimator(_model())
+    with pytest.raises(ConfigError, match="ego_poses"):
+        est.step(["a"], [np.zeros((3, 3), np.float32)], ego_poses=[np.eye(3)])
+
+
+def test_points_length_matches_numpy_percentiles():
+    rng = np.random.default_rng(7)
+    angles = np.arange(8) * np.pi / 8
+    for n in (2, 3, 17, 256):
+        p = rng.normal(size=(n, 3)).astype(np.float32) * [5.0, 1.0, 1.0]
+        proj = p[:, :2] @ np.stack([np.cos(angles), np.sin(angles)])
+        ref = np.percentile(proj, 99, axis=0) - np.percentile(proj, 1, axis=0)
+        assert points_length(p) == pytest.approx(ref.max(), rel=1e-5)
+    assert points_length(np.zeros((1, 3))) == 0.0

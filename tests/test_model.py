@@ -213,3 +213,61 @@ def test_frame_skip_starts_as_the_plain_gru_and_carries_its_state():
     # the baseline ignores the option
     base = ShapePoseNet(ModelConfig(**{**TINY.to_dict(), "frame_skip": True}), False)
     assert base.skip is None and base.state_size == 20
+
+
+# ---------------------------------------------------------------------- input scale (issue 15)
+SCALED = ModelConfig(**{**TINY.to_dict(), "encoder1": (8, 16), "encoder2": (16, 24),
+                        "shape_decoder": (32,), "pose_decoder": (16,), "scale_norm": "length",
+                        "shape_frame": "canonical"})
+
+
+@pytest.mark.parametrize("shape_frame", ["canonical", "sensor"])
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_scale_is_exactly_equivariant(shape_frame, recurrent):
+    """Input scaled by 2 with s = 2 gives exactly 2x the output at s = 1 (powers of two are
+    exact in float), pose yaw unchanged; the recurrent state is the same."""
+    torch.manual_seed(0)
+    cfg = ModelConfig(**{**SCALED.to_dict(), "shape_frame": shape_frame})
+    net = ShapePoseNet(cfg, recurrent=recurrent).eval()
+    pts = torch.randn(2, 4, 32, 3) * torch.tensor([2.0, 0.8, 0.6]) + torch.tensor([9.0, -3, -1])
+    lengths = torch.tensor([[32, 0, 7, 20], [3, 32, 32, 1]])
+    one = net(pts, lengths, scale=torch.ones(2, 4))
+    two = net(2 * pts, lengths, scale=torch.full((2, 4), 2.0))
+    assert torch.equal(two["complete"], 2 * one["complete"])
+    assert torch.equal(two["pose"][..., :3], 2 * one["pose"][..., :3])
+    assert torch.equal(two["pose"][..., 3], one["pose"][..., 3])
+    assert torch.equal(two["hidden"], one["hidden"])
+
+
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_scale_one_is_the_unscaled_network(recurrent):
+    """s = 1 (every vehicle up to scale_ref) is bit-identical to the network without
+    scale_norm, with the same weights: old weights behave the same on cars."""
+    torch.manual_seed(0)
+    plain = ShapePoseNet(ModelConfig(**{**SCALED.to_dict(), "scale_norm": "none"}), recurrent)
+    scaled = ShapePoseNet(SCALED, recurrent)
+    scaled.load_state_dict(plain.state_dict())
+    pts, lengths = torch.randn(2, 3, 32, 3), torch.tensor([[32, 5, 0], [1, 32, 9]])
+    a = plain.eval()(pts, lengths)
+    b = scaled.eval()(pts, lengths, scale=torch.ones(2, 3))
+    assert torch.equal(a["complete"], b["complete"]) and torch.equal(a["pose"], b["pose"])
+    enc = scaled.encode(pts, lengths, scale=torch.ones(2, 3))
+    assert torch.equal(scaled.decode_pose(enc["h"], enc["means"], enc["scales"]), a["pose"])
+
+
+def test_scale_for_and_config_fields():
+    cfg = SCALED
+    assert cfg.scale_for(4.5) == 1.0 and cfg.scale_for(6.0) == 1.0
+    assert cfg.scale_for(12.0) == 2.0 and cfg.scale_for(100.0) == cfg.scale_max == 4.0
+    assert cfg.scale_for(float("nan")) == 1.0 and cfg.scale_for(0.0) == 1.0
+    np.testing.assert_array_equal(cfg.scale_for(np.array([3.0, 9.0])), [1.0, 1.5])
+    torch.testing.assert_close(cfg.scale_for(torch.tensor([[18.0, -1.0]])),
+                               torch.tensor([[3.0, 1.0]]))
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    assert ModelConfig().scale_norm == "none"
+    # a config written before the fields existed reads with the defaults
+    old = {k: v for k, v in cfg.to_dict().items() if not k.startswith("scale_")}
+    assert ModelConfig.from_dict(old).scale_norm == "none"
+    for bad in ({"scale_norm": "points"}, {"scale_ref": 0.0}, {"scale_max": 0.5}):
+        with pytest.raises(ConfigError):
+            ModelConfig(**bad)

@@ -199,3 +199,49 @@ def test_real_tracks_without_a_reference_are_left_out_of_training(tmp_path):
     assert keep.track_ids == ["a"]
     with pytest.raises(DataError, match="no train track has a complete shape"):
         _trainable(TrackDataset(ds.path, _entries=entries[1:]), "train")
+
+
+def test_window_lengths_for_the_input_scale(dataset):
+    """Without the option the windows are unchanged (no extra draws, no ``length``); with it,
+    deterministic lengths: a tracker's noisy box length, or the points' running extent."""
+    from seqshape.data.windows import points_length, running_lengths
+
+    tracks = dataset.split("train")
+    kw = {"window": 5, "num_points": 32, "num_complete": 64, "seed": 3, "key": 1}
+    plain = WindowDataset(tracks, **kw).window_at(2, 1)
+    assert "length" not in plain
+    hint = WindowDataset(tracks, length_hint_noise=0.08, **kw)
+    w = hint.window_at(2, 1)
+    assert all(np.array_equal(w[k], plain[k]) for k in plain)
+    assert np.array_equal(w["length"], hint.window_at(2, 1)["length"])
+    true_length = tracks[2 // hint.windows_per_track].size[0]
+    assert w["length"].shape == (5,) and np.all(np.abs(np.log(w["length"] / true_length)) < 0.5)
+    pts = WindowDataset(tracks, length_hint_noise=0.08, length_points_prob=1.0, **kw)
+    w = pts.window_at(2, 1)
+    per_frame = [points_length(w["points"][k, :w["lengths"][k]]) for k in range(5)]
+    np.testing.assert_allclose(w["length"], running_lengths(per_frame, True), rtol=1e-6)
+    assert np.all(np.diff(w["length"]) >= 0)
+    np.testing.assert_array_equal(running_lengths([0, 3, 0, 2, 5], True), [0, 3, 3, 3, 5])
+    np.testing.assert_array_equal(running_lengths([0, 3, 0, 2, 5], False), [0, 3, 3, 2, 5])
+
+
+@pytest.mark.parametrize("kind", ["sequential", "baseline"])
+def test_train_with_input_scale(dataset, tmp_path, kind):
+    cfg = get_train_config("smoke").with_stage_steps((3, 2, 3))
+    cfg = dataclasses.replace(cfg, model_overrides={**cfg.model_overrides,
+                                                    "scale_norm": "length", "scale_ref": 2.0},
+                              length_points_prob=0.5)
+    tr = Trainer(dataset.path, tmp_path / "run", kind, cfg)
+    batch = tr._val_batches[0]
+    scale = tr._scale(batch)
+    assert scale.shape == batch["lengths"].shape and float(scale.min()) >= 1.0
+    assert float(scale.max()) > 1.0  # 3.5-5 m boxes against scale_ref 2 m
+    path = tr.run()
+    payload = torch.load(path, weights_only=True)
+    assert payload["model_config"]["scale_norm"] == "length"
+    assert payload["model_config"]["scale_ref"] == 2.0
+    assert TrainConfig.from_dict(payload["train_config"]).length_points_prob == 0.5
+    est = Estimator.from_checkpoint(path)
+    assert est.config.scale_norm == "length"
+    out = est.step(["t"], [np.random.default_rng(0).normal(size=(40, 3)) * [2, 1, 0.5]])[0]
+    assert out.scale > 1.0 and np.all(np.isfinite(out.complete))

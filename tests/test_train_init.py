@@ -237,3 +237,27 @@ def test_init_adds_a_zero_frame_skip(dataset, source, tmp_path):
     a = Estimator.from_checkpoint(source / "model.pt").step(["t"], pts)[0]
     b = Estimator.from_checkpoint(out).step(["t"], pts)[0]
     np.testing.assert_allclose(b.complete, a.complete, atol=1e-5)
+
+
+def test_init_switches_on_the_input_scale(dataset, source, tmp_path):
+    """--init weights trained without the input scale into a run with it: accepted (no new
+    parameters), and the exported model computes exactly the old function on cars."""
+    cfg = dataclasses.replace(SMOKE.with_stage_steps((0, 0, 0)),
+                              model_overrides={**SMOKE.model_overrides, "scale_norm": "length"})
+    tr = Trainer(dataset.path, tmp_path / "run", "sequential", cfg, init=source / "model.pt")
+    _assert_same(tr.model.state_dict(), _weights(source / "model.pt"))
+    out = tr.run()
+    payload = torch.load(out, weights_only=True)
+    assert payload["model_config"]["scale_norm"] == "length"
+    assert payload["init"]["path"] == str((source / "model.pt").resolve())
+    rng = np.random.default_rng(0)
+    old, new = Estimator.from_checkpoint(source / "model.pt"), Estimator.from_checkpoint(out)
+    for _ in range(3):
+        pts = [rng.uniform(-0.5, 0.5, (50, 3)) * [4.5, 1.8, 1.5] + [8, 2, 0]]
+        a, b = old.step(["t"], pts)[0], new.step(["t"], pts)[0]
+        assert b.scale == 1.0
+        assert np.array_equal(a.complete, b.complete) and np.array_equal(a.pose, b.pose)
+    # other differences are still refused
+    bad = dataclasses.replace(cfg, model_overrides={**cfg.model_overrides, "hidden": 32})
+    with pytest.raises(ConfigError, match="hidden"):
+        Trainer(dataset.path, tmp_path / "bad", "sequential", bad, init=source / "model.pt")

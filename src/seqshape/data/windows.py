@@ -12,6 +12,14 @@ Item ``i`` of :class:`WindowDataset` is a window of track ``i // windows_per_tra
     valid     bool    (W,)        frame exists (short tracks are padded) and its pose is known
     complete  float32 (M, 3)      ground-truth complete shape, canonical frame, M points
     start     int64   ()          first frame index of the window in its track
+    length    float32 (W,)        vehicle length L per frame for the input scale (only when
+                                  ``length_hint_noise`` is set; see below)
+
+Input-scale lengths (``ModelConfig.scale_norm="length"``): per window, with probability
+``length_points_prob`` the points' own estimate (:func:`points_length`, the running maximum
+over the window's frames for the sequential model, as the ``Estimator`` does without hints),
+otherwise a tracker's box length: the true length times ``exp(b + e_t)``, b ~ N(0,
+noise) per window (a box's size bias) and e_t ~ N(0, noise / 3) per frame (its jitter).
 """
 
 from __future__ import annotations
@@ -46,6 +54,44 @@ def resample_frame(points: np.ndarray, num_points: int,
     if n == 0:
         return np.zeros((num_points, 3), np.float32), 0
     return np.resize(points, (num_points, 3)), n
+
+
+#: Bird's-eye directions (0, 22.5, ..., 157.5 deg) over which :func:`points_length` takes the
+#: percentile extent; the largest is within cos(11.25 deg) = 2 % of the true diameter.
+_DIRECTIONS = np.stack([np.cos(np.arange(8) * np.pi / 8), np.sin(np.arange(8) * np.pi / 8)])
+LENGTH_PERCENTILES = (1.0, 99.0)
+
+
+def points_length(points: np.ndarray) -> float:
+    """A vehicle length estimate from its points alone: the largest bird's-eye extent (1st
+    to 99th percentile, so a stray return does not count) over 8 directions; 0 for fewer than
+    two points. A partial view gives a lower bound: take the running maximum over a track."""
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    if len(points) < 2:
+        return 0.0
+    proj = np.sort(points[:, :2] @ _DIRECTIONS.astype(np.float32), axis=0)  # (n, 8)
+    lo, hi = (_sorted_percentile(proj, q) for q in LENGTH_PERCENTILES)
+    return float((hi - lo).max())
+
+
+def _sorted_percentile(sorted_rows: np.ndarray, q: float) -> np.ndarray:
+    """``np.percentile(x, q, axis=0)`` (linear interpolation) of column-sorted rows, without
+    numpy's generic machinery (several times faster on a few hundred rows)."""
+    pos = q / 100.0 * (len(sorted_rows) - 1)
+    i = int(pos)
+    j = min(i + 1, len(sorted_rows) - 1)
+    frac = pos - i
+    return sorted_rows[i] + frac * (sorted_rows[j] - sorted_rows[i])
+
+
+def running_lengths(frame_lengths: np.ndarray, running: bool) -> np.ndarray:
+    """Per-frame lengths with empty frames (0) carrying the last known one, and with
+    ``running`` the running maximum (frames before the first points stay 0 = unknown)."""
+    out = np.asarray(frame_lengths, dtype=np.float64).copy()
+    for k in range(1, len(out)):
+        if out[k] <= 0 or (running and out[k] < out[k - 1]):
+            out[k] = out[k - 1]
+    return out
 
 
 class TrackCache:
@@ -88,11 +134,17 @@ class WindowDataset(torch.utils.data.Dataset):
             first detection); otherwise the start is uniform over the track.
         seed, key: select the random stream; ``set_epoch`` selects the epoch.
         cache_size: tracks kept in memory (a track file holds all its frames).
+        length_hint_noise: None (no ``length`` entry; the windows are then exactly those of
+            a dataset without the option) or the log-normal sigma of a tracker's box length.
+        length_points_prob: probability that a window's lengths come from its points.
+        length_running: points lengths are running maxima (sequential) or per frame.
     """
 
     def __init__(self, tracks: TrackDataset, window: int = 8, num_points: int = 256,
                  num_complete: int = 1024, windows_per_track: int = 1, p_first: float = 0.25,
-                 seed: int = 0, key: int = 0, cache_size: int = 128):
+                 seed: int = 0, key: int = 0, cache_size: int = 128,
+                 length_hint_noise: float | None = None, length_points_prob: float = 0.0,
+                 length_running: bool = True):
         if len(tracks) == 0:
             raise DataError(tracks.path, "no tracks to draw training windows from")
         self.cache = TrackCache(tracks, cache_size)
@@ -104,6 +156,9 @@ class WindowDataset(torch.utils.data.Dataset):
         self.seed = int(seed)
         self.key = int(key)
         self.epoch = 0
+        self.length_hint_noise = None if length_hint_noise is None else float(length_hint_noise)
+        self.length_points_prob = float(length_points_prob)
+        self.length_running = bool(length_running)
 
     def __len__(self) -> int:
         return len(self.cache) * self.windows_per_track
@@ -137,9 +192,20 @@ class WindowDataset(torch.utils.data.Dataset):
         valid[:n] = known
         m = len(track.complete)
         idx = rng.choice(m, self.num_complete, replace=m < self.num_complete)
-        return {"points": points, "lengths": lengths, "poses": poses, "valid": valid,
-                "complete": track.complete[idx].astype(np.float32),
-                "start": np.int64(start)}
+        out = {"points": points, "lengths": lengths, "poses": poses, "valid": valid,
+               "complete": track.complete[idx].astype(np.float32), "start": np.int64(start)}
+        if self.length_hint_noise is not None:  # drawn last: the rest stays as without it
+            out["length"] = self._lengths(track, points, lengths, rng)
+        return out
+
+    def _lengths(self, track: Track, points: np.ndarray, lengths: np.ndarray,
+                 rng: np.random.Generator) -> np.ndarray:
+        w, sigma = self.window, self.length_hint_noise
+        if rng.random() < self.length_points_prob:
+            per_frame = [points_length(points[k, :lengths[k]]) for k in range(w)]
+            return running_lengths(per_frame, self.length_running).astype(np.float32)
+        log_noise = rng.normal(0.0, sigma) + rng.normal(0.0, sigma / 3.0, size=w)
+        return (float(track.size[0]) * np.exp(log_noise)).astype(np.float32)
 
 
 def collate(items: Sequence[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:

@@ -2,7 +2,9 @@
 
 from seqshape.model.config import MODEL_PRESETS, ModelConfig, get_model_config
 from seqshape.model.estimator import Estimate, Estimator, build_model, read_model_file
+from seqshape.model.heading import HeadingConfig
 from seqshape.model.network import PointEncoder, ShapePoseNet
 
-__all__ = ["MODEL_PRESETS", "Estimate", "Estimator", "ModelConfig", "PointEncoder",
+__all__ = ["MODEL_PRESETS", "Estimate", "Estimator", "HeadingConfig", "ModelConfig",
+           "PointEncoder",
            "ShapePoseNet", "build_model", "get_model_config", "read_model_file"]

@@ -10,7 +10,15 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+import numpy as np
+import torch
+
 from seqshape.errors import ConfigError
+
+SCALE_NORMS = ("none", "length")
+#: Frozen-weights-compatible fields: they add no parameters, so ``--init`` accepts weights
+#: whose configuration differs from the run's only in these (see ``load_init``).
+PARAMETER_FREE_FIELDS = ("scale_norm", "scale_ref", "scale_max")
 
 
 @dataclass(frozen=True)
@@ -51,6 +59,18 @@ class ModelConfig:
     model without it loads unchanged (``--init``) and begins as the plain GRU model. The
     recurrent state is then (h_t, W f_t): an empty frame carries both. Ignored by the
     baseline."""
+    scale_norm: str = "none"
+    """Extension (issue 15, vehicles 2-4x a car): ``"none"`` (the paper; bit-identical to
+    models without the field) or ``"length"``: per track and frame an input scale
+    ``s = clip(L / scale_ref, 1, scale_max)`` from a vehicle length L (a tracker's or
+    annotator's box, a class, or the points' own extent), the demeaned points are divided by
+    s before the encoder and the decoded shape and pose offsets multiplied by s after (exactly
+    scale-equivariant; s = 1, the unchanged network, for anything up to ``scale_ref`` long).
+    Adds no parameters: weights trained without it load unchanged (``--init``)."""
+    scale_ref: float = 6.0
+    """L_ref (m): lengths up to this give s = 1 (the shipped weights saw cars 3.6-5.8 m)."""
+    scale_max: float = 4.0
+    """Upper clip of s (a 24 m vehicle)."""
 
     def __post_init__(self):
         for name in ("encoder1", "encoder2", "shape_decoder", "pose_decoder"):
@@ -62,6 +82,14 @@ class ModelConfig:
         if self.shape_frame not in ("sensor", "canonical"):
             raise ConfigError(f"ModelConfig.shape_frame must be 'sensor' or 'canonical', got "
                               f"{self.shape_frame!r}")
+        if self.scale_norm not in SCALE_NORMS:
+            raise ConfigError(f"ModelConfig.scale_norm must be one of {SCALE_NORMS}, got "
+                              f"{self.scale_norm!r}")
+        if not (float(self.scale_ref) > 0 and float(self.scale_max) >= 1):
+            raise ConfigError(f"ModelConfig needs scale_ref > 0 and scale_max >= 1, got "
+                              f"{self.scale_ref!r}, {self.scale_max!r}")
+        object.__setattr__(self, "scale_ref", float(self.scale_ref))
+        object.__setattr__(self, "scale_max", float(self.scale_max))
         for name in ("num_points", "hidden", "num_complete"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"ModelConfig.{name} must be >= 1, got {getattr(self, name)}")
@@ -70,6 +98,19 @@ class ModelConfig:
     def feature_size(self) -> int:
         """Size of the frame feature f_t."""
         return self.encoder2[-1]
+
+    def scale_for(self, length):
+        """Input scale ``s = clip(length / scale_ref, 1, scale_max)`` for vehicle lengths (m):
+        a float, a numpy array or a tensor (same type out). Non-finite or non-positive
+        lengths (unknown) give 1."""
+        if isinstance(length, torch.Tensor):
+            ok = torch.isfinite(length) & (length > 0)
+            s = torch.where(ok, length, torch.zeros_like(length)) / self.scale_ref
+            return s.clamp(1.0, self.scale_max)
+        arr = np.asarray(length, dtype=np.float64)
+        s = np.clip(np.where(np.isfinite(arr) & (arr > 0), arr, 0.0) / self.scale_ref,
+                    1.0, self.scale_max)
+        return float(s) if s.ndim == 0 else s
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (tuples become lists)."""

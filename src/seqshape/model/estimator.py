@@ -5,6 +5,12 @@
 >>> out[0].complete.shape, out[0].pose                         # doctest: +SKIP
 ((1024, 3), array([12.1, -3.4, -0.9, 0.31]))
 
+Optional per-track inputs of :meth:`Estimator.step` (all default to None = unknown):
+``sizes`` (a tracker's / annotator's box (l, w, h) or a length; sets the input scale of a
+``scale_norm="length"`` model), ``classes`` (vehicle class: a floor on that length) and
+``ego_poses`` ((4, 4) sensor frame of this frame -> a fixed frame: lets the heading
+post-processing (:mod:`seqshape.model.heading`) use the track's motion).
+
 Weight files (checkpoints and exported ``model.pt``) are plain dicts read with
 ``torch.load(weights_only=True)``::
 
@@ -19,16 +25,17 @@ from __future__ import annotations
 import logging
 import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from seqshape.data.windows import resample_frame
+from seqshape.data.windows import points_length, resample_frame
 from seqshape.errors import ConfigError, DataError
 from seqshape.model.config import ModelConfig
+from seqshape.model.heading import HeadingConfig, HeadingFilter, wrap_angle
 from seqshape.model.network import ShapePoseNet
 
 log = logging.getLogger(__name__)
@@ -37,6 +44,10 @@ CHECKPOINT_FORMAT = "seqshape-checkpoint"
 CHECKPOINT_VERSION = 1
 KINDS = ("sequential", "baseline")
 PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
+#: A class hint's floor on the vehicle length (m) used for the input scale when no size is
+#: given: about the short end of each class (the points' running extent raises it). Only the
+#: classes longer than ``ModelConfig.scale_ref`` change anything.
+CLASS_MIN_LENGTH = {"car": 3.5, "van": 4.5, "truck": 6.5, "bus": 10.0, "trailer": 7.0}
 
 
 def read_model_file(path: str | Path) -> dict[str, Any]:
@@ -80,13 +91,17 @@ class Estimate:
 
     ``complete`` (K, 3) float32 and ``pose`` (4,) float64 = (x, y, z, yaw) are in that frame's
     sensor frame; ``num_points`` is the number of input points of the frame (0 = the estimate
-    was carried forward from the state).
+    was carried forward from the state). ``flipped``: the heading post-processing turned the
+    network's yaw by pi (the placed ``complete`` is unchanged); ``scale``: the input scale s
+    used (1 without ``scale_norm``).
     """
 
     track_id: str
     complete: np.ndarray
     pose: np.ndarray
     num_points: int
+    flipped: bool = field(default=False, init=False)
+    scale: float = field(default=1.0, init=False)
 
 
 @dataclass
@@ -95,6 +110,8 @@ class _TrackState:
     mean: torch.Tensor  # (3,) last known frame mean
     seen: bool
     rng: np.random.Generator
+    length: float = 0.0  # points' length estimate: running max (sequential) or last frame's
+    heading: HeadingFilter | None = None
 
 
 class Estimator:
@@ -104,11 +121,14 @@ class Estimator:
         model: a trained :class:`ShapePoseNet` (put in eval mode).
         threads: torch intra-op threads (``torch.set_num_threads``; None leaves it alone).
         seed: seeds the per-track random subsets of frames with more than N points.
+        heading: the heading post-processing (:class:`HeadingConfig`; None = the defaults,
+            which act only on steps given ego poses).
     """
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None, seed: int = 0,
-                 metrics: dict | None = None):
+                 metrics: dict | None = None, heading: HeadingConfig | None = None):
         self.model = model.eval()
+        self.heading = heading or HeadingConfig()
         self.seed = int(seed)
         self.metrics = dict(metrics or {})
         if threads is not None:
@@ -117,16 +137,17 @@ class Estimator:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "cpu",
-                        threads: int | None = None, seed: int = 0) -> Estimator:
+                        threads: int | None = None, seed: int = 0,
+                        heading: HeadingConfig | None = None) -> Estimator:
         """Load a training checkpoint or an exported ``model.pt`` (CPU inference)."""
         if device != "cpu":
             raise ConfigError(f"Estimator runs on the CPU; got device {device!r}")
         payload = read_model_file(path)
-        return cls(build_model(payload, path), threads, seed, payload.get("metrics"))
+        return cls(build_model(payload, path), threads, seed, payload.get("metrics"), heading)
 
     @classmethod
     def from_pretrained(cls, kind: str = "sequential", threads: int | None = None,
-                        seed: int = 0) -> Estimator:
+                        seed: int = 0, heading: HeadingConfig | None = None) -> Estimator:
         """The shipped weights ``seqshape/pretrained/<kind>.pt``."""
         if kind not in KINDS:
             raise ConfigError(f"unknown pretrained model {kind!r}; choose from {KINDS}")
@@ -135,7 +156,7 @@ class Estimator:
             raise DataError(path, f"shipped {kind} weights are missing from this installation; "
                                   f"train them with `seqshape train --model {kind}` and use "
                                   f"Estimator.from_checkpoint(RUN/model.pt)")
-        return cls.from_checkpoint(path, threads=threads, seed=seed)
+        return cls.from_checkpoint(path, threads=threads, seed=seed, heading=heading)
 
     @property
     def recurrent(self) -> bool:
@@ -185,28 +206,77 @@ class Estimator:
         for i, f in enumerate(frames):
             if len(f):
                 batch[i, 0] = np.resize(f, (n, 3))
-        return torch.from_numpy(batch), torch.tensor(lengths, dtype=torch.int64)[:, None]
+        return (torch.from_numpy(batch), torch.tensor(lengths, dtype=torch.int64)[:, None],
+                frames)
 
-    def step(self, track_ids: Sequence[str], point_lists: Sequence[np.ndarray]) -> list[Estimate]:
+    def _scales(self, states: list[_TrackState], frames: list[np.ndarray],
+                sizes: Sequence | None, classes: Sequence | None) -> torch.Tensor | None:
+        """(B, 1) input scales of a ``scale_norm="length"`` model (None otherwise).
+
+        L per track: the size hint's length; else the points' estimate (running maximum over
+        the track for the sequential model, this frame's, or the last frame with points', for
+        the baseline), raised to the class hint's floor (:data:`CLASS_MIN_LENGTH`).
+        """
+        cfg = self.model.cfg
+        if cfg.scale_norm == "none":
+            return None
+        out = []
+        for i, (st, f) in enumerate(zip(states, frames, strict=True)):
+            if len(f):
+                here = points_length(f)
+                st.length = max(st.length, here) if self.recurrent else here
+            hint = _length_hint(sizes, i)
+            if hint is None:
+                hint = max(st.length, _class_floor(classes, i))
+            out.append(cfg.scale_for(hint))
+        return torch.tensor(out, dtype=torch.float32)[:, None]
+
+    def _fix_headings(self, result: list[Estimate], states: list[_TrackState],
+                      ego_poses: Sequence | None) -> None:
+        """The heading post-processing (:mod:`seqshape.model.heading`), in place."""
+        for i, (est, st) in enumerate(zip(result, states, strict=True)):
+            ego = _ego_pose(ego_poses, i)
+            if ego is None and not self.heading.active_without_poses:
+                continue
+            if st.heading is None:
+                st.heading = HeadingFilter(self.heading)
+            if st.heading.update(est.pose, ego, est.num_points > 0):
+                est.pose[3] = wrap_angle(est.pose[3] + np.pi)
+                est.flipped = True
+
+    def step(self, track_ids: Sequence[str], point_lists: Sequence[np.ndarray],
+             sizes: Sequence | None = None, classes: Sequence[str | None] | None = None,
+             ego_poses: Sequence[np.ndarray | None] | None = None) -> list[Estimate]:
         """Advance each listed track by one frame, all in one forward pass.
 
         ``point_lists[i]`` is track ``track_ids[i]``'s (N_i, 3) points in its current sensor
         frame (N_i may be 0; rows with NaN/inf are dropped). New ids start a fresh state.
-        Returns one :class:`Estimate` per track, in order.
+        Optional hints, each a sequence parallel to ``track_ids`` whose entries may be None:
+        ``sizes[i]`` a box (l, w, h) or a length (m) for the input scale (only a
+        ``scale_norm="length"`` model uses it; it overrides the points' estimate);
+        ``classes[i]`` a vehicle class (car, van, truck, bus, trailer: a floor on the points'
+        length estimate, :data:`CLASS_MIN_LENGTH`; likewise only used by such a model);
+        ``ego_poses[i]`` (4, 4) this frame's sensor frame -> a fixed frame (the same for all
+        the track's steps), for the heading post-processing. Returns one :class:`Estimate`
+        per track, in order.
         """
         track_ids = [str(t) for t in track_ids]
         if len(track_ids) != len(point_lists):
             raise ConfigError(f"{len(track_ids)} track ids but {len(point_lists)} point lists")
+        for name, hints in (("sizes", sizes), ("classes", classes), ("ego_poses", ego_poses)):
+            if hints is not None and len(hints) != len(track_ids):
+                raise ConfigError(f"{len(track_ids)} track ids but {len(hints)} {name}")
         if len(set(track_ids)) != len(track_ids):
             raise ConfigError("a track id appears twice in one step")
         if not track_ids:
             return []
         states = [self._state(t) for t in track_ids]
-        points, lengths = self._prepare(states, point_lists)
+        points, lengths, frames = self._prepare(states, point_lists)
+        scale = self._scales(states, frames, sizes, classes)
         with torch.inference_mode():
             out = self.model(points, lengths, torch.stack([s.hidden for s in states]),
                              torch.stack([s.mean for s in states]),
-                             torch.tensor([s.seen for s in states]))
+                             torch.tensor([s.seen for s in states]), scale=scale)
         complete = out["complete"][:, 0].numpy()
         pose = out["pose"][:, 0].double().numpy()
         result = []
@@ -214,4 +284,39 @@ class Estimator:
             st.hidden, st.mean = out["hidden"][i].clone(), out["mean"][i].clone()
             st.seen = bool(out["seen"][i, 0])
             result.append(Estimate(tid, complete[i].copy(), pose[i].copy(), int(lengths[i, 0])))
+            if scale is not None:
+                result[-1].scale = float(scale[i, 0])
+        if ego_poses is not None or self.heading.active_without_poses:
+            self._fix_headings(result, states, ego_poses)
         return result
+
+
+def _length_hint(sizes: Sequence | None, i: int) -> float | None:
+    """Track i's length hint (m) from ``sizes`` (a box (l, w, h) or a length), or None."""
+    if sizes is None or sizes[i] is None:
+        return None
+    size = np.asarray(sizes[i], dtype=np.float64).reshape(-1)
+    if size.size == 0 or not np.isfinite(size[0]) or size[0] <= 0:
+        raise ConfigError(f"sizes[{i}] must be a positive length or a box (l, w, h), got "
+                          f"{sizes[i]!r}")
+    return float(size[0])
+
+
+def _class_floor(classes: Sequence | None, i: int) -> float:
+    if classes is None or not classes[i]:
+        return 0.0
+    try:
+        return CLASS_MIN_LENGTH[str(classes[i])]
+    except KeyError:
+        raise ConfigError(f"classes[{i}]: unknown vehicle class {classes[i]!r}; expected one "
+                          f"of {sorted(CLASS_MIN_LENGTH)} or None") from None
+
+
+def _ego_pose(ego_poses: Sequence | None, i: int) -> np.ndarray | None:
+    if ego_poses is None or ego_poses[i] is None:
+        return None
+    pose = np.asarray(ego_poses[i], dtype=np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise ConfigError(f"ego_poses[{i}] must be a finite (4, 4) matrix, got shape "
+                          f"{pose.shape}")
+    return pose

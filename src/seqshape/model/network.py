@@ -2,16 +2,20 @@
 
 Shapes used throughout: B tracks (batch), W frames per track (window), N points per frame
 (padded; ``lengths`` (B, W) says how many are real), H hidden size, K output points.
-All coordinates are in metres in each frame's sensor frame; nothing is rescaled.
+All coordinates are in metres in each frame's sensor frame. With ``scale_norm="length"`` the
+caller passes a per-frame input scale s (B, W) (see :meth:`ModelConfig.scale_for`): the
+demeaned points are divided by s before the encoder, the decoded shape and pose offsets are
+multiplied by s after, so the network is exactly scale-equivariant; without it (``scale``
+None) nothing is rescaled.
 
 Per frame t (paper Eqs. 3-7)::
 
     mean_t = masked mean of Z_t                     (last known mean if Z_t is empty)
-    f_t    = encoder(Z_t - mean_t)                  PointNet -> max-pool -> concat -> PointNet -> max
+    f_t    = encoder((Z_t - mean_t) / s_t)          PointNet -> max-pool -> concat -> PointNet -> max
     h_t    = GRU(h_{t-1}, f_t)                      (baseline: h_t = Linear(f_t); empty frame: h_t = h_{t-1})
     d_t    = h_t  (extension ``frame_skip``: h_t + W f_t, W zero-initialised)
-    X_t    = g_shape(d_t) + mean_t                  (K, 3)
-    T_t    = g_pose(d_t) = (x, y, z, cos, sin) -> (x + mean, y + mean, z + mean, atan2(sin, cos))
+    X_t    = s_t g_shape(d_t) + mean_t              (K, 3)      (s_t = 1 without scale_norm)
+    T_t    = g_pose(d_t) = (x, y, z, cos, sin) -> (s x + mean, s y + mean, s z + mean, atan2(sin, cos))
 """
 
 from __future__ import annotations
@@ -129,7 +133,8 @@ class ShapePoseNet(nn.Module):
 
     def encode(self, points: torch.Tensor, lengths: torch.Tensor,
                hidden: torch.Tensor | None = None, last_mean: torch.Tensor | None = None,
-               seen: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+               seen: torch.Tensor | None = None,
+               scale: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Run the encoder and the fusion over a window.
 
         Args:
@@ -139,10 +144,13 @@ class ShapePoseNet(nn.Module):
                 :attr:`state_size`.
             last_mean: (B, 3) last known frame mean of each track (zeros if None).
             seen: (B,) bool, whether each track had points before (False if None).
+            scale: (B, W) input scale s per frame (None: no rescaling, the paper's network).
+                The caller chooses s for empty frames too (the decoders use it there).
 
         Returns ``h`` (B, W, H) decoder input after each frame, ``means`` (B, W, 3) the offset added
         back to each frame's outputs, ``seen`` (B, W) whether any points were seen up to that
-        frame, and ``hidden`` (B, S), ``mean`` (B, 3), ``seen_last`` (B,) to continue from.
+        frame, ``scales`` (B, W) (None without ``scale``), and ``hidden`` (B, S), ``mean``
+        (B, 3), ``seen_last`` (B,) to continue from.
         """
         b, w, n, _ = points.shape
         lengths = lengths.to(points.device).long()
@@ -150,6 +158,9 @@ class ShapePoseNet(nn.Module):
         m = mask.unsqueeze(-1).to(points.dtype)
         frame_mean = (points * m).sum(2) / lengths.clamp(min=1).unsqueeze(-1).to(points.dtype)
         x = points - frame_mean.unsqueeze(2)
+        if scale is not None:
+            scale = scale.to(points.device, points.dtype).reshape(b, w)
+            x = x / scale[:, :, None, None]
         if self.cfg.view_input:
             view = frame_mean / frame_mean.norm(dim=-1, keepdim=True).clamp(min=1e-6)
             x = torch.cat([x, view.unsqueeze(2).expand(-1, -1, n, -1)], dim=-1)
@@ -177,50 +188,60 @@ class ShapePoseNet(nn.Module):
             means.append(mean)
             seens.append(seen_t)
         return {"h": torch.stack(hs, 1), "means": torch.stack(means, 1),
-                "seen": torch.stack(seens, 1), "hidden": h, "mean": mean, "seen_last": seen_t}
+                "seen": torch.stack(seens, 1), "scales": scale, "hidden": h, "mean": mean,
+                "seen_last": seen_t}
 
     def decode_shape(self, h: torch.Tensor, mean: torch.Tensor,
-                     pose: torch.Tensor | None = None) -> torch.Tensor:
+                     pose: torch.Tensor | None = None,
+                     scale: torch.Tensor | None = None) -> torch.Tensor:
         """Complete shape (..., K, 3) in the sensor frame from states (..., H), means (..., 3).
 
         With ``shape_frame="canonical"`` the decoded canonical shape is placed with ``pose``
-        (..., 4) (decoded here when not given).
+        (..., 4) (decoded here when not given). ``scale`` (...) multiplies the decoded shape.
         """
         out = self.shape_decoder(h).reshape(*h.shape[:-1], self.cfg.num_complete, 3)
+        if scale is not None:
+            out = out * scale[..., None, None]
         if self.cfg.shape_frame == "sensor":
             return out + mean.unsqueeze(-2)
         if pose is None:
-            pose = self.decode_pose(h, mean)
+            pose = self.decode_pose(h, mean, scale)
         c, s = torch.cos(pose[..., 3:4]), torch.sin(pose[..., 3:4])  # (..., 1)
         x = c * out[..., 0] - s * out[..., 1]
         y = s * out[..., 0] + c * out[..., 1]
         placed = torch.stack([x, y, out[..., 2]], dim=-1)  # (..., K, 3)
         return placed + pose[..., :3].unsqueeze(-2)
 
-    def decode_pose(self, h: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
-        """Pose (..., 4) = (x, y, z, yaw) in the sensor frame; yaw = atan2(sin, cos)."""
+    def decode_pose(self, h: torch.Tensor, mean: torch.Tensor,
+                    scale: torch.Tensor | None = None) -> torch.Tensor:
+        """Pose (..., 4) = (x, y, z, yaw) in the sensor frame; yaw = atan2(sin, cos).
+        ``scale`` (...) multiplies the decoded offset from the mean."""
         p = self.pose_decoder(h)
         yaw = torch.atan2(p[..., 4], p[..., 3])
-        return torch.cat([p[..., :3] + mean, yaw.unsqueeze(-1)], dim=-1)
+        offset = p[..., :3] if scale is None else p[..., :3] * scale.unsqueeze(-1)
+        return torch.cat([offset + mean, yaw.unsqueeze(-1)], dim=-1)
 
     def forward(self, points: torch.Tensor, lengths: torch.Tensor,
                 hidden: torch.Tensor | None = None, last_mean: torch.Tensor | None = None,
                 seen: torch.Tensor | None = None, shape: bool = True,
-                pose: bool = True) -> dict[str, torch.Tensor]:
-        """Estimate shape and pose for every frame of a window (see :meth:`encode`).
+                pose: bool = True, scale: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Estimate shape and pose for every frame of a window (see :meth:`encode`; ``scale``
+        (B, W) is the per-frame input scale, None for none).
 
         Returns ``complete`` (B, W, K, 3) and ``pose`` (B, W, 4) in each frame's sensor frame
         (left out when ``shape`` / ``pose`` is False), ``hidden`` (B, H), ``mean`` (B, 3),
         ``seen`` (B, W): frames before a track's first points have meaningless estimates.
         """
-        enc = self.encode(points, lengths, hidden, last_mean, seen)
+        enc = self.encode(points, lengths, hidden, last_mean, seen, scale)
         out = {"hidden": enc["hidden"], "mean": enc["mean"], "seen": enc["seen"]}
+        sc = enc["scales"]
         if pose or (shape and self.cfg.shape_frame == "canonical"):
-            pose_t = self.decode_pose(enc["h"], enc["means"])
+            pose_t = self.decode_pose(enc["h"], enc["means"], sc)
             if pose:
                 out["pose"] = pose_t
         if shape:
             out["complete"] = self.decode_shape(
-                enc["h"], enc["means"], pose_t if self.cfg.shape_frame == "canonical" else None)
+                enc["h"], enc["means"], pose_t if self.cfg.shape_frame == "canonical" else None,
+                sc)
         return out
 

@@ -8,7 +8,9 @@ uninterrupted one would.
 
 :func:`load_init` reads the weights a run starts from (``seqshape train --init``): an exported
 ``model.pt``, a training checkpoint (only its weights), or ``"pretrained"`` (the shipped
-``seqshape/pretrained/<kind>.pt``), checking that kind and model configuration match the run.
+``seqshape/pretrained/<kind>.pt``), checking that kind and model configuration match the run
+(except the parameter-free fields :data:`~seqshape.model.config.PARAMETER_FREE_FIELDS`: the
+input scale can be switched on when fine-tuning from weights trained without it).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import torch
 from seqshape._io import atomic_open
 from seqshape.errors import ConfigError, DataError
 from seqshape.model import estimator
-from seqshape.model.config import ModelConfig
+from seqshape.model.config import PARAMETER_FREE_FIELDS, ModelConfig
 from seqshape.model.estimator import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_model_file
 from seqshape.model.network import ShapePoseNet
 
@@ -112,7 +114,10 @@ def load_init(spec: str | Path, kind: str, model_cfg: ModelConfig
     except (ConfigError, TypeError, ValueError) as exc:
         raise DataError(path, f"invalid model_config ({exc})") from None
     run_cfg = model_cfg.to_dict()
-    diff = [k for k in run_cfg if src_cfg.get(k) != run_cfg[k]]
+    # parameter-free options (the input scale) may differ: the weights fit either way, and
+    # with s = 1 (every car) the network computes exactly what it did
+    diff = [k for k in run_cfg
+            if src_cfg.get(k) != run_cfg[k] and k not in PARAMETER_FREE_FIELDS]
     state_dict = payload["state_dict"]
     if diff == ["frame_skip"] and run_cfg["frame_skip"] and kind == "sequential":
         # adding the zero-initialised frame skip keeps the function: start from the weights

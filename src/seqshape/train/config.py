@@ -74,6 +74,14 @@ class TrainConfig:
     """Tracks kept in memory per process."""
     tensorboard: bool = True
     """Also log to TensorBoard (RUN/tb) when the package is installed."""
+    length_hint_noise: float = 0.08
+    """Only with ``ModelConfig.scale_norm="length"``: the input scale's length is a tracker's
+    box length, the true length times exp(N(0, this) per window + N(0, this/3) per frame)
+    (:class:`seqshape.data.windows.WindowDataset`)."""
+    length_points_prob: float = 0.3
+    """Only with ``scale_norm="length"``: probability that a window's length comes from its
+    points instead (what ``Estimator`` uses without hints: running maximum for the sequential
+    model, per frame for the baseline)."""
 
     def __post_init__(self):
         if len(self.stages) != 3:
@@ -86,8 +94,13 @@ class TrainConfig:
         for name in ("window", "batch_size", "num_complete_gt", "threads", "log_every"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
-        if not 0.0 <= self.p_first <= 1.0:
-            raise ConfigError(f"TrainConfig.p_first must be in [0, 1], got {self.p_first}")
+        for name in ("p_first", "length_points_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"TrainConfig.{name} must be in [0, 1], got "
+                                  f"{getattr(self, name)}")
+        if self.length_hint_noise < 0:
+            raise ConfigError(f"TrainConfig.length_hint_noise must be >= 0, got "
+                              f"{self.length_hint_noise}")
 
     def model_config(self) -> ModelConfig:
         """The resolved network configuration."""

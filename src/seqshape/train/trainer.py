@@ -11,7 +11,8 @@ Outputs in the run folder ``RUN``::
 
 Losses are averaged over the window frames that have a known pose and follow the track's
 first points (earlier frames have no estimate). The GT complete shape is placed in each
-frame with its GT pose; nothing is rescaled (metres, square metres).
+frame with its GT pose; losses are in metres and square metres (with ``scale_norm="length"``
+the network rescales its input and output internally; the losses see metres).
 
 Data parallelism (``torchrun --nproc_per_node R``, gloo on CPU): every process builds the
 same model from the seed, takes its disjoint shard of each global batch
@@ -166,10 +167,26 @@ class Trainer:
         c, m = self.cfg, self.model.cfg
         wds = WindowDataset(self.val_tracks, c.window, m.num_points, c.num_complete_gt,
                             windows_per_track=max(1, -(-c.val_windows // len(self.val_tracks))),
-                            p_first=0.5, seed=c.seed + 1_000_003, key=0, cache_size=4)
+                            p_first=0.5, seed=c.seed + 1_000_003, key=0, cache_size=4,
+                            **self._length_options())
         idx = np.linspace(0, len(wds) - 1, min(c.val_windows, len(wds))).round().astype(int)
         items = [wds.window_at(int(i), 0) for i in idx]
         return [collate(items[i:i + c.batch_size]) for i in range(0, len(items), c.batch_size)]
+
+    def _length_options(self) -> dict[str, Any]:
+        """WindowDataset options: per-frame lengths for the input scale when the model uses
+        one (``scale_norm="length"``), none otherwise (the windows are then unchanged)."""
+        if self.model.cfg.scale_norm == "none":
+            return {}
+        return {"length_hint_noise": self.cfg.length_hint_noise,
+                "length_points_prob": self.cfg.length_points_prob,
+                "length_running": self.model.recurrent}
+
+    def _scale(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """The (B, W) input scale of a batch, None without ``scale_norm``."""
+        if self.model.cfg.scale_norm == "none":
+            return None
+        return self.model.cfg.scale_for(batch["length"].float())
 
     # ------------------------------------------------------------------ losses
     def _losses(self, batch: dict[str, torch.Tensor], stage: int | None) -> dict[str, torch.Tensor]:
@@ -178,13 +195,14 @@ class Trainer:
         ``stage`` 0 / 1 computes only the CD / pose term (stage 1 with the backbone frozen
         and run without gradient); None or 2 computes both.
         """
-        pts, lengths = batch["points"], batch["lengths"]
+        pts, lengths, scale = batch["points"], batch["lengths"], self._scale(batch)
         if stage == 1:
             with torch.no_grad():
-                enc = self.model.encode(pts, lengths)
-            out = {"pose": self.model.decode_pose(enc["h"], enc["means"]), "seen": enc["seen"]}
+                enc = self.model.encode(pts, lengths, scale=scale)
+            out = {"pose": self.model.decode_pose(enc["h"], enc["means"], enc["scales"]),
+                   "seen": enc["seen"]}
         else:
-            out = self.model(pts, lengths, shape=True, pose=stage != 0)
+            out = self.model(pts, lengths, shape=True, pose=stage != 0, scale=scale)
         sel = batch["valid"] & out["seen"]
         frame_track = sel.nonzero()[:, 0]
         gt_pose = batch["poses"][sel]
@@ -312,7 +330,7 @@ class Trainer:
             self.state["optimizer"] = None
         wds = WindowDataset(self.train_tracks, c.window, self.model.cfg.num_points,
                             c.num_complete_gt, c.windows_per_track, c.p_first, c.seed,
-                            key=stage + 1, cache_size=c.cache_size)
+                            key=stage + 1, cache_size=c.cache_size, **self._length_options())
         # the bar counts per-mille of the stage: steps or the wall-clock budget, whichever ends it
         bar = progress(total=1000, initial=int(1000 * self._progress_fraction(stage)), unit="‰",
                        desc=f"stage {stage + 1}/3 ({STAGE_NAMES[stage]}, {self.kind})",
