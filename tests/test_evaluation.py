@@ -489,3 +489,23 @@ def test_one_way_reference_to_estimate_distance_by_brute_force(dataset):
         d = cdist(tr.complete_in_frame(t), estimates[i].complete)
         assert rec["ref_to_est_m"][i] == pytest.approx(d.min(1).mean(), rel=1e-9)
         assert rec["cd_m"][i] == pytest.approx(d.min(1).mean() + d.min(0).mean(), rel=1e-9)
+
+
+def test_track_hints_give_class_and_ego_poses_never_the_size():
+    from seqshape.evaluation.runner import track_hints
+    from seqshape.model import Estimator
+
+    est = Estimator.from_pretrained("baseline")
+    pts = [np.zeros((3, 3), np.float32)] * 2
+    synthetic = Track("s", pts, np.zeros((2, 4)), None, SIZE, np.arange(2.0), {})
+    ego = [np.eye(4).tolist(), (np.eye(4) * 2).tolist()]
+    real = Track("r", pts, np.zeros((2, 4)), None, SIZE, np.arange(2.0),
+                 {"source": "real", "class": "truck", "ego_poses": ego})
+    bare = Track("b", pts, np.zeros((2, 4)), None, SIZE, np.arange(2.0),
+                 {"source": "real", "class": "car"})
+    h = track_hints(est, [synthetic, real], [0, 1])
+    assert h["classes"] == [None, "truck"] and "sizes" not in h
+    np.testing.assert_array_equal(h["ego_poses"][0], np.eye(4))  # the generator's static sensor
+    np.testing.assert_array_equal(h["ego_poses"][1], np.eye(4) * 2)  # the track's own frame 1
+    assert track_hints(est, [bare], [0]) == {"classes": ["car"], "ego_poses": None}
+    assert track_hints(OracleEstimator([]), [real], [0]) == {}  # other estimators: nothing

@@ -106,14 +106,39 @@ def detection_span(track: Track) -> tuple[int, int] | None:
     return None if len(det) == 0 else (int(det[0]), int(det[-1]) + 1)
 
 
-def predict_track(estimator: EstimatorLike, track: Track) -> tuple[range, list]:
-    """Run one track from its first to its last detection; returns ``(frames, estimates)``."""
+def track_hints(est, tracks: Sequence[Track], frames: Sequence[int]) -> dict:
+    """What a user's pipeline knows besides the points, as keyword arguments of
+    :meth:`seqshape.model.Estimator.step`: each track's class (``meta["class"]``) and the ego
+    pose of its frame (``meta["ego_poses"]`` of real tracks; the identity for synthetic tracks,
+    whose sensor is static; none for real tracks without ego motion). Never the true box size:
+    it would hand the network the length it is scored on. Other estimators (the box fit, test
+    doubles) get nothing."""
+    from seqshape.model.estimator import Estimator
+
+    if not isinstance(est, Estimator):
+        return {}
+    egos = []
+    for tr, t in zip(tracks, frames, strict=True):
+        if tr.meta.get("ego_poses"):
+            egos.append(np.asarray(tr.meta["ego_poses"][t], dtype=np.float64))
+        else:
+            egos.append(None if tr.meta.get("source") == "real" else np.eye(4))
+    return {"classes": [tr.meta.get("class") or None for tr in tracks],
+            "ego_poses": egos if any(e is not None for e in egos) else None}
+
+
+def predict_track(estimator: EstimatorLike, track: Track,
+                  hints: bool = False) -> tuple[range, list]:
+    """Run one track from its first to its last detection; returns ``(frames, estimates)``.
+    ``hints``: pass :func:`track_hints` to the estimator."""
     span = detection_span(track)
     if span is None:
         raise SeqshapeError(f"track {track.track_id} has no frame with points")
     frames = range(*span)
     estimator.reset(track.track_id)
-    out = [estimator.step([track.track_id], [track.points[t]])[0] for t in frames]
+    out = [estimator.step([track.track_id], [track.points[t]],
+                          **(track_hints(estimator, [track], [t]) if hints else {}))[0]
+           for t in frames]
     estimator.reset(track.track_id)
     return frames, out
 
@@ -270,7 +295,8 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
 
 
 def _run_chunk(col: _Collector, name: str, est: EstimatorLike, tracks: list[Track],
-               spans: list[tuple[int, int]], emd_points: int, emd_every: int, bar) -> int:
+               spans: list[tuple[int, int]], emd_points: int, emd_every: int, bar,
+               hints: bool = True) -> int:
     """Step all tracks of a chunk together, frame index by frame index; returns K."""
     length = max(stop - start for start, stop in spans)
     n_det = [0] * len(tracks)
@@ -281,7 +307,9 @@ def _run_chunk(col: _Collector, name: str, est: EstimatorLike, tracks: list[Trac
         active = [j for j, (a, b) in enumerate(spans) if a + i < b]
         ids = [tracks[j].track_id for j in active]
         pts = [tracks[j].points[spans[j][0] + i] for j in active]
-        estimates = est.step(ids, pts)
+        kw = track_hints(est, [tracks[j] for j in active],
+                         [spans[j][0] + i for j in active]) if hints else {}
+        estimates = est.step(ids, pts, **kw)
         if len(estimates) != len(active):
             raise SeqshapeError(f"estimator {name!r} returned {len(estimates)} estimates for "
                                 f"{len(active)} tracks")
@@ -320,7 +348,7 @@ def is_real(tracks: Sequence[Track]) -> bool:
 def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
                     max_tracks: int | None = None, emd_points: int = 1024, emd_every: int = 1,
                     batch_tracks: int = 64, workers: int = 2, floor: str = "auto",
-                    seed: int = 0) -> EvalResult:
+                    seed: int = 0, hints: bool = True) -> EvalResult:
     """Run each estimator over every track of ``dataset`` and score each frame.
 
     Args:
@@ -328,6 +356,10 @@ def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
             ``{"sequential": ..., "baseline": ...}``.
         dataset: a sequence of :class:`~seqshape.data.Track` (e.g. ``TrackDataset.split("val")``).
         max_tracks: evaluate only the first N tracks.
+        hints: give the networks each track's class and ego poses (:func:`track_hints`), as a
+            user's pipeline would; False feeds the points alone (the protocol before the
+            heading and scale options existed; with the shipped defaults both are the same
+            except for the heading step, which needs the ego poses).
         emd_points: EMD subsample size (both clouds); ``emd_every``: EMD on every k-th scored
             frame of each track (0 disables EMD).
         batch_tracks: tracks stepped together per ``step`` call.
@@ -359,7 +391,7 @@ def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
         for c in range(0, len(tracks), batch_tracks):
             for name, est in estimators.items():
                 k = _run_chunk(col, name, est, tracks[c:c + batch_tracks],
-                               spans[c:c + batch_tracks], emd_points, emd_every, bar)
+                               spans[c:c + batch_tracks], emd_points, emd_every, bar, hints)
                 k_of[name] = k_of.get(name) or k
         bar.close()
         records = col.finish()
@@ -373,7 +405,7 @@ def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
               "n_pred": np.array([f[2] for f in fl], dtype=np.int64),
               "method": np.array([f[3] for f in fl], dtype=str)}
     settings = dict(n_tracks=len(tracks), emd_points=emd_points, emd_every=emd_every,
-                    floor=floor, seed=seed, methods=list(estimators),
+                    floor=floor, seed=seed, methods=list(estimators), hints=hints,
                     n_pred_points=k_of, real=is_real(tracks),
                     n_reference_tracks=sum(tr.complete is not None for tr in tracks))
     return EvalResult(records, floors, settings)

@@ -54,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--view", default="auto",
                         help="track id for track_view.html, 'auto' (longest track) or 'none'")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-hints", dest="hints", action="store_false",
+                        help="feed the networks the points alone: no class and no ego poses "
+                             "(the heading step then never acts; docs/evaluation.md)")
 
 
 def load_estimator(spec: str, kind: str):
@@ -109,7 +112,7 @@ def choose_view_track(dataset, spec: str, max_tracks: int | None):
 def evaluate_to(out: Path, dataset, estimators: dict, max_tracks: int | None = None,
                 emd_every: int = 1, emd_points: int = 1024, workers: int = 2,
                 batch_tracks: int = 64, floor: str = "auto", view: str = "auto",
-                seed: int = 0) -> dict:
+                seed: int = 0, hints: bool = True) -> dict:
     """Run the evaluation and write every output file into ``out``; returns the summary."""
     from seqshape.evaluation.html import write_track_html
     from seqshape.evaluation.plots import write_plots
@@ -119,7 +122,7 @@ def evaluate_to(out: Path, dataset, estimators: dict, max_tracks: int | None = N
     t0 = time.perf_counter()
     result = evaluate_tracks(estimators, dataset, max_tracks=max_tracks, emd_points=emd_points,
                              emd_every=emd_every, batch_tracks=batch_tracks, workers=workers,
-                             floor=floor, seed=seed)
+                             floor=floor, seed=seed, hints=hints)
     result.settings["seconds"] = round(time.perf_counter() - t0, 1)
     result.settings["data"] = str(dataset.path)
     summary = write_metrics(out, result)
@@ -148,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
                                                seed=args.seed)
     summary = evaluate_to(args.out, dataset, estimators, args.max_tracks, args.emd_every,
                           args.emd_points, args.workers, args.batch_tracks, args.floor,
-                          args.view, args.seed)
+                          args.view, args.seed, args.hints)
     print(metrics_markdown(summary))
     print(f"wrote {args.out}/metrics.json, metrics.md, per_frame.csv, plots"
           f"{', track_view.html' if args.view != 'none' else ''}")
