@@ -88,3 +88,20 @@ def test_bad_files_give_clear_errors(tmp_path):
         load_track(tmp_path / "foreign.npz")
     with pytest.raises(DataError, match="file not found"):
         load_track(tmp_path / "nope.npz")
+
+
+def test_union_of_dataset_folders(tmp_path):
+    def tr(tid, split):
+        return Track(tid, [np.full((2, 3), len(tid), np.float32)], np.zeros((1, 4)), None,
+                     np.ones(3), np.zeros(1), {"split": split})
+
+    write_dataset(tmp_path / "a", [tr("a1", "train"), tr("a2", "val")])
+    write_dataset(tmp_path / "b", [tr("bb1", "train")])
+    u = TrackDataset.union([tmp_path / "a", tmp_path / "b"])
+    assert u.track_ids == ["a1", "a2", "bb1"]
+    assert u.split("train").track_ids == ["a1", "bb1"]
+    np.testing.assert_array_equal(u.get("bb1").points[0], np.full((2, 3), 3))
+    assert TrackDataset.union([tmp_path / "a"]).track_ids == ["a1", "a2"]
+    write_dataset(tmp_path / "c", [tr("a1", "train")])
+    with pytest.raises(DataError, match="a1"):
+        TrackDataset.union([tmp_path / "a", tmp_path / "c"])

@@ -90,6 +90,23 @@ class TrackDataset:
             raise DataError(self.path, f"no tracks in split {name!r} (splits here: {splits})")
         return TrackDataset(self.path, _entries=entries)
 
+    @classmethod
+    def union(cls, paths) -> TrackDataset:
+        """Several dataset folders as one dataset (entries' files made absolute); track ids
+        must be unique across them. One path gives that dataset itself."""
+        paths = [Path(p) for p in paths]
+        if len(paths) == 1:
+            return cls(paths[0])
+        entries, seen = [], {}
+        for p in paths:
+            for e in cls(p).entries:
+                if e["track_id"] in seen:
+                    raise DataError(p, f"track id {e['track_id']!r} is also in {seen[e['track_id']]}"
+                                       f": datasets with shared ids cannot be joined")
+                seen[e["track_id"]] = p
+                entries.append({**e, "file": str((p / e["file"]).resolve())})
+        return cls(paths[0], _entries=entries)
+
     def with_complete(self) -> TrackDataset:
         """The tracks that have a complete shape, as a dataset view (manifests of real tracks
         mark the others with ``"has_complete": false``; entries without the key count as

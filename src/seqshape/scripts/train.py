@@ -19,7 +19,9 @@ HELP = "train the sequential model or the per-frame baseline (3 stages, resumabl
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, help="track dataset folder (train/val splits)")
+    parser.add_argument("--data", required=True, nargs="+",
+                        help="track dataset folder(s) (train/val splits); several folders are "
+                             "trained on as one dataset (e.g. the paper preset and a real one)")
     parser.add_argument("--out", required=True, help="run folder (checkpoints, logs, model.pt)")
     parser.add_argument("--model", choices=("sequential", "baseline"), default="sequential")
     parser.add_argument("--preset", default="small",

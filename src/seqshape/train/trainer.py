@@ -84,7 +84,9 @@ class Trainer:
                  resume: bool = False, init: str | Path | None = None):
         if kind not in KINDS:
             raise ConfigError(f"unknown model kind {kind!r}; choose from {KINDS}")
-        self.out, self.data, self.kind = Path(out), Path(data), kind
+        self.out, self.kind = Path(out), kind
+        self.data_paths = [Path(d) for d in ([data] if isinstance(data, str | Path) else data)]
+        self.data = self.data_paths[0]
         self.rank, self.world = _init_distributed()
         self.is_main = self.rank == 0
         payload = self._resume_payload(resume)
@@ -93,7 +95,7 @@ class Trainer:
         self.cfg = cfg
         torch.set_num_threads(cfg.threads)
         torch.use_deterministic_algorithms(True, warn_only=True)
-        dataset = TrackDataset(self.data)
+        dataset = TrackDataset.union(self.data_paths)
         self.train_tracks = _trainable(dataset.split("train"), "train")
         try:
             self.val_tracks: TrackDataset | None = _trainable(dataset.split("val"), "val")
@@ -401,7 +403,8 @@ class Trainer:
     def write_config(self) -> None:
         if self.is_main:
             atomic_write_json(self.out / "config.json", {
-                "kind": self.kind, "data": str(self.data), "world_size": self.world,
+                "kind": self.kind, "data": ", ".join(map(str, self.data_paths)),
+                "world_size": self.world,
                 "train_config": self.cfg.to_dict(),
                 "model_config": self.model.cfg.to_dict(), "init": self.init})
 
