@@ -20,6 +20,13 @@ fixed seeds (``--seed``: the vehicles' parameters and the scan noise generator);
 over the cases.
 
     python benchmarks/bm_raycast.py [--repeats 7] [--sensor vlp16] [--seed 0]
+
+``--generation`` measures whole-track generation instead: the ``paper`` and ``real`` presets on
+the same vehicles (the fleet library: ``paper`` with ``library="fleet"``), ``--vehicles`` of
+them with one track each (paper track lengths), through ``generate_dataset`` with ``--workers``
+processes into a temporary folder; tracks/s, frames/s and the median points per frame.
+
+    python benchmarks/bm_raycast.py --generation [--vehicles 24] [--workers 2] [--seed 0]
 """
 
 from __future__ import annotations
@@ -83,7 +90,14 @@ def main() -> None:
 
     ap = bench_parser(__doc__, repeats=7)
     ap.add_argument("--sensor", default="vlp16")
+    ap.add_argument("--generation", action="store_true",
+                    help="time paper vs real track generation instead")
+    ap.add_argument("--vehicles", type=int, default=24)
+    ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
+    if args.generation:
+        _generation(args)
+        return
     cfg = get_sensor(args.sensor).without_noise()
     rows = []
     for v in (procedural_vehicle(kind, args.seed) for kind in KINDS):
@@ -91,6 +105,32 @@ def main() -> None:
             rows.append((v.kind, len(v.mesh.faces), dist,
                          _case(v.mesh, dist, cfg, args.repeats, args.seed)))
     _print(rows, cfg)
+
+
+def _generation(args) -> None:
+    import tempfile
+    import time
+
+    from seqshape.data import TrackDataset
+    from seqshape.sim.generate import generate_dataset, preset_config
+
+    rows = []
+    for name in ("paper", "real"):
+        cfg = preset_config(name, n_vehicles=args.vehicles, n_val_vehicles=1,
+                            tracks_per_vehicle=1, seed=args.seed, library="fleet")
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            generate_dataset(cfg, tmp, workers=args.workers)
+            dt = time.perf_counter() - t0
+            ds = TrackDataset(tmp)
+            tracks = [ds[i] for i in range(len(ds))]
+        frames = sum(len(t) for t in tracks)
+        pts = [len(p) for t in tracks for p in t.points]
+        rows.append((name, len(tracks), frames, f"{dt:.1f}", f"{len(tracks) / dt:.2f}",
+                     f"{frames / dt:.0f}", f"{np.median(pts):.0f}"))
+    print(f"{args.vehicles} fleet vehicles x 1 track, {args.workers} workers, seed {args.seed}\n")
+    print_table(("preset", "tracks", "frames", "seconds", "tracks/s", "frames/s",
+                 "median points/frame"), rows)
 
 
 def _print(rows, cfg) -> None:

@@ -13,7 +13,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny",
                         help="tiny: a few short tracks in seconds; paper: 183 vehicles x 11 "
-                             "tracks, VLP-16; realistic: paper + ground, occluders, noise")
+                             "tracks, VLP-16; realistic: paper + ground, occluders, noise; "
+                             "real: fleet vehicles, sensor mix, glass, dark surfaces, edge "
+                             "mixing, ground and clutter, tracker-box crop (docs/generation.md)")
     parser.add_argument("--out", required=True, help="output dataset folder")
     parser.add_argument("--meshes", help="folder of vehicle meshes (OBJ/PLY/STL/OFF/GLB/GLTF) "
                                          "to use instead of procedural vehicles")
@@ -26,7 +28,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="drive the vehicles along CSV logs (t,x,y,yaw in the sensor frame) "
                              "instead of sampled trajectories")
     parser.add_argument("--sensor", choices=sorted(SENSORS), default=None,
-                        help="LiDAR preset (default vlp16)")
+                        help="LiDAR preset (default vlp16; with --preset real: one sensor "
+                             "instead of the preset's mix)")
+    parser.add_argument("--library", choices=("procedural", "fleet"), default=None,
+                        help="vehicle library (default: procedural; fleet for --preset real)")
+    parser.add_argument("--vehicles", type=int, default=None, dest="n_vehicles",
+                        help="number of vehicles (default: the preset's; the val share "
+                             "scales with it)")
     parser.add_argument("--seed", type=int, default=None, help="master seed (default 0)")
     parser.add_argument("--num-points", type=int, default=None,
                         help="points of the complete shape per vehicle (default 2048)")
@@ -39,15 +47,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from seqshape.sim.generate import generate_dataset, parse_shard, preset_config
+    from seqshape.sim.generate import PRESETS, generate_dataset, parse_shard, preset_config
 
     shard = parse_shard(args.shard)
     meshes = str(Path(args.meshes).resolve()) if args.meshes else None
     trajs = str(Path(args.trajectories).resolve()) if args.trajectories else None
-    config = preset_config(args.preset, sensor=args.sensor, seed=args.seed,
+    n_val = None
+    if args.n_vehicles is not None:
+        base = PRESETS[args.preset]
+        n_val = min(max(round(args.n_vehicles * base.n_val_vehicles / base.n_vehicles), 1),
+                    max(args.n_vehicles - 1, 0))
+    config = preset_config(args.preset, n_val_vehicles=n_val, sensor=args.sensor, seed=args.seed,
                            num_points=args.num_points, meshes=meshes, trajectories=trajs,
                            mesh_up=args.mesh_up, mesh_forward=args.mesh_forward,
-                           mesh_scale=args.mesh_scale)
+                           mesh_scale=args.mesh_scale, library=args.library,
+                           n_vehicles=args.n_vehicles)
     s = generate_dataset(config, args.out, workers=args.workers, shard=shard)
     print(f"{args.out}: {s.n_generated} tracks generated, {s.n_skipped} already there, "
           f"{s.n_tracks} in the preset ({s.seconds:.1f} s)")

@@ -41,19 +41,25 @@ class TrackPlan:
 
 @dataclass
 class WorkerPayload:
-    """What a worker needs, picklable: config, per-vehicle (id, kind, source, V, F), splits."""
+    """What a worker needs, picklable: config, per-vehicle (id, kind, source, V, F), splits;
+    for the real path also per-vehicle face labels and annotator box sizes (None: unknown)."""
 
     config: object
     vehicles: list[tuple[str, str, str, np.ndarray, np.ndarray]]
     splits: list[str]
     logs: list
+    face_labels: list | None = None
+    box_sizes: list | None = None
 
     @classmethod
     def build(cls, config, vehicles, splits, logs) -> WorkerPayload:
+        real = getattr(config, "real", None) is not None
         return cls(config, [(v.vehicle_id, v.kind, v.source,
                              np.asarray(v.mesh.vertices, dtype=np.float64),
                              np.asarray(v.mesh.faces, dtype=np.int64)) for v in vehicles],
-                   list(splits), list(logs))
+                   list(splits), list(logs),
+                   [getattr(v, "face_labels", None) for v in vehicles] if real else None,
+                   [getattr(v, "box_size", None) for v in vehicles] if real else None)
 
 
 _STATE: dict = {}
@@ -172,6 +178,8 @@ def make_track(i: int) -> Track:
 
     payload, sensor, plan = _STATE["payload"], _STATE["sensor"], _STATE["plan"]
     cfg = payload.config
+    if getattr(cfg, "real", None) is not None:
+        return make_real_track(i)
     v = i // plan.tpv
     vid, kind, source = payload.vehicles[v][:3]
     rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, i]))
@@ -186,6 +194,65 @@ def make_track(i: int) -> Track:
             "generator_version": _generator_version(), "preset": cfg.name, "seed": cfg.seed,
             "track_index": i, "manoeuvre": traj.manoeuvre, "trajectory_source": traj.source,
             "ground": cfg.ground, "noise": cfg.noise, "occluders": occ_ids}
+    return Track(plan.track_id(i), points, poses, _complete(v), size, traj.t, meta)
+
+
+def make_real_track(i: int) -> Track:
+    """Track ``i`` on the real path (:mod:`seqshape.sim.real`): scene scan, tracker-box crop."""
+    from dataclasses import asdict
+
+    from seqshape.sim import real
+    from seqshape.sim.sensors import mount_rotation
+
+    payload, plan = _STATE["payload"], _STATE["plan"]
+    cfg = payload.config
+    rc = cfg.real
+    v = i // plan.tpv
+    vid, kind, source = payload.vehicles[v][:3]
+    rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, i]))
+    srng = real.scene_rng(cfg.seed, i)
+    mesh = _mesh(v)
+    size = np.asarray(mesh.extents, dtype=np.float64)
+    sensor, height, pitch, roll, sx, sy = real.sample_mount(srng, rc)
+    n, d = real.ground_plane(height, sx, sy)
+    traj = _trajectory(i, rng, size)
+    poses = traj.poses(0.0)
+    poses[:, 2] = real.ground_height(n, d, poses[:, 0], poses[:, 1]) - mesh.bounds[0, 2]
+    occ, occ_ids = _occluders(rng, v, poses, size, traj.manoeuvre == "parked")
+    index = {u[0]: k for k, u in enumerate(payload.vehicles)}
+    labels = payload.face_labels or [None] * len(payload.vehicles)
+    paint = real.sample_paint(srng, rc)
+    objects = [real.vehicle_object(mesh, poses, labels[v], paint, rc, 0)]
+    for (m, p), oid in zip(occ, occ_ids, strict=True):
+        p[:, 2] = real.ground_height(n, d, p[:, 0], p[:, 1]) - m.bounds[0, 2]
+        objects.append(real.vehicle_object(m, p, labels[index[oid]], real.sample_paint(srng, rc),
+                                           rc, 2))
+    blockers = [(poses, size)] + [(p, m.extents) for m, p in occ]
+    clutter = real.sample_clutter(srng, poses, size, blockers, n, d, rc)
+    extra = real.clutter_object(clutter)
+    if extra is not None:
+        objects.append(extra)
+    scene = real.Scene(objects, n, d, float(srng.uniform(*rc.ground_reflectivity)))
+    rot = mount_rotation(pitch, roll)
+    drop = 0.5 + rc.max_slope * (size[0] / 2 + rc.context) * 2
+    rays = real.scan_rays(sensor, mesh.bounds, poses, rot, abs(pitch) + abs(roll), rc.context,
+                          drop)
+    frames = real.scan_scene(scene, rays, rot, sensor, rc, real.ray_rng(cfg.seed, i), len(poses))
+    box = payload.box_sizes[v] if payload.box_sizes and payload.box_sizes[v] is not None else size
+    points, boxes, counts = real.crop_frames(frames, poses, np.asarray(box, dtype=np.float64), rc,
+                                             cfg.seed, i, (n, d))
+    meta = {"mesh_id": vid, "kind": kind, "source": source, "sensor": sensor.name,
+            "split": payload.splits[v], "generator": "seqshape.sim.generate",
+            "generator_version": _generator_version(), "preset": cfg.name, "seed": cfg.seed,
+            "track_index": i, "manoeuvre": traj.manoeuvre, "trajectory_source": traj.source,
+            "ground": True, "noise": True, "occluders": occ_ids,
+            "real": {"sensor_height": height, "pitch_deg": float(np.degrees(pitch)),
+                     "roll_deg": float(np.degrees(roll)), "ground_slope": [sx, sy],
+                     "paint_reflectivity": paint, "clutter": [k for _, _, k in clutter],
+                     "ground_reflectivity": scene.ground_rho},
+            "jitter": asdict(rc.jitter), "crop": rc.crop.to_dict(),
+            "crop_boxes": np.round(boxes, 4).tolist(),
+            "sources": {name: counts[:, k].tolist() for k, name in enumerate(real.SOURCES)}}
     return Track(plan.track_id(i), points, poses, _complete(v), size, traj.t, meta)
 
 

@@ -27,6 +27,7 @@ from seqshape.data.dataset import MANIFEST, manifest_entry, write_manifest
 from seqshape.data.track import Track, load_track
 from seqshape.errors import ConfigError, DataError
 from seqshape.sim import _worker as _tracks
+from seqshape.sim.real import RealConfig
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +79,17 @@ class GenerateConfig:
     """Scale of the user meshes to metres."""
     trajectories: str | None = None
     """A CSV file or folder of CSV files (t,x,y,yaw) driving the vehicles instead of sampling."""
+    library: str = "procedural"
+    """Vehicle library: "procedural" (the original kinds) or "fleet" (seqshape.vehicles
+    fleet_library: every class, per-face materials). Ignored with ``meshes``."""
+    real: RealConfig | None = None
+    """The real path (seqshape.sim.real): sensor mix and mount, materials, ground and clutter
+    returns, mixed edge returns, tracker-box crop. None: the original scan (``sensor``,
+    ``noise``, ``ground`` as documented above)."""
+
+    def __post_init__(self):
+        if isinstance(self.real, dict):  # from generate.json
+            object.__setattr__(self, "real", RealConfig(**self.real))
 
     def validate(self) -> None:
         if self.n_vehicles < 1 and self.meshes is None:
@@ -93,10 +105,17 @@ class GenerateConfig:
             raise ConfigError("need 0 < min_distance < max_distance")
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
+        if self.library not in LIBRARIES:
+            raise ConfigError(f"library must be one of {LIBRARIES}, got {self.library!r}")
         from seqshape.sim.sensors import get_sensor
 
         get_sensor(self.sensor)
 
+
+LIBRARIES = ("procedural", "fleet")
+#: fields added after the first datasets: left out of generate.json / the manifest while they
+#: hold their default, so that the older presets' outputs stay byte-identical
+_LATE_FIELDS = {"library": "procedural", "real": None}
 
 PRESETS: dict[str, GenerateConfig] = {
     # a handful of short tracks, generated in seconds
@@ -106,6 +125,11 @@ PRESETS: dict[str, GenerateConfig] = {
     "paper": GenerateConfig("paper"),
     # paper + ground plane and up to 4 other vehicles as occluders + range noise and dropout
     "realistic": GenerateConfig("realistic", noise=True, ground=True, max_occluders=4),
+    # train on what inference sees: the fleet library, a sensor mix (VLP-16, VLP-32C, HDL-64E,
+    # OS1-128) at 1.5-2.2 m with +-1.5 deg pitch / roll, glass, dark surfaces, edge mixing,
+    # ground and clutter returns, occluders, and the shared crop with a tracker-like box
+    "real": GenerateConfig("real", noise=True, ground=True, max_occluders=4, library="fleet",
+                           real=RealConfig()),
 }
 
 
@@ -133,8 +157,16 @@ def parse_shard(text: str) -> tuple[int, int]:
 
 
 def config_dict(config: GenerateConfig) -> dict:
-    """The config as saved in ``generate.json`` and the manifest (with the generator version)."""
-    return {**asdict(config), "generator_version": GENERATOR_VERSION}
+    """The config as saved in ``generate.json`` and the manifest (with the generator version).
+
+    Fields of `_LATE_FIELDS` at their default are left out (older datasets stay identical);
+    values are JSON-normalised (tuples -> lists) so a reread config compares equal.
+    """
+    d = asdict(config)
+    for k, default in _LATE_FIELDS.items():
+        if d.get(k) == default:
+            d.pop(k)
+    return {**json.loads(json.dumps(d)), "generator_version": GENERATOR_VERSION}
 
 
 def _check_config(out: Path, cfg: dict) -> None:
@@ -188,7 +220,17 @@ def _load_vehicles(config: GenerateConfig):
     if config.meshes is not None:
         return vehicles.load_vehicle_folder(config.meshes, up=config.mesh_up,
                                             forward=config.mesh_forward, scale=config.mesh_scale)
-    return vehicles.vehicle_library(config.n_vehicles, seed=config.seed)
+    return library_vehicles(config.library, config.n_vehicles, config.seed)
+
+
+def library_vehicles(library: str, n: int, seed: int):
+    """The ``n`` vehicles of ``library``: the one switch between the procedural library and
+    the fleet library (`seqshape.vehicles.fleet_library`)."""
+    from seqshape import vehicles
+
+    if library == "fleet":
+        return vehicles.fleet_library(n, seed=seed)
+    return vehicles.vehicle_library(n, seed=seed)
 
 
 def _load_trajectories(spec: str | None):
@@ -335,7 +377,12 @@ def preset_config(name: str, **overrides) -> GenerateConfig:
         base = PRESETS[name]
     except KeyError:
         raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None
-    cfg = replace(base, **{k: v for k, v in overrides.items() if v is not None})
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if base.real is not None and "sensor" in overrides and "real" not in overrides:
+        # one sensor model for the whole dataset instead of the preset's mix
+        overrides["real"] = replace(base.real, sensors=(overrides["sensor"],),
+                                    sensor_weights=(1.0,))
+    cfg = replace(base, **overrides)
     cfg.validate()
     return cfg
 
