@@ -269,3 +269,17 @@ def test_show_writes_png_and_offline_html(small, tmp_path, capsys):
     assert '<script src="http' not in text and "<script src='http" not in text
     assert main(["show", str(small), "--track", "nope", "--out", str(tmp_path)]) == 1
     assert "no track 'nope'" in capsys.readouterr().err
+
+
+def test_cli_tracks_per_vehicle_and_mean_frames(tmp_path):
+    import json
+
+    from seqshape.cli import main
+
+    out = tmp_path / "g"
+    assert main(["generate", "--preset", "tiny", "--out", str(out), "--tracks-per-vehicle", "1",
+                 "--mean-frames", "12"]) == 0
+    m = json.loads((out / "manifest.json").read_text())
+    assert len(m["tracks"]) == 6  # 6 vehicles x 1 track
+    assert (m["config"]["mean_frames"], m["config"]["max_frames"]) == (12.0, 30)
+    assert all(10 <= e["n_frames"] <= 30 for e in m["tracks"])

@@ -35,6 +35,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--vehicles", type=int, default=None, dest="n_vehicles",
                         help="number of vehicles (default: the preset's; the val share "
                              "scales with it)")
+    parser.add_argument("--tracks-per-vehicle", type=int, default=None,
+                        help="trajectories per vehicle (default: the preset's)")
+    parser.add_argument("--mean-frames", type=float, default=None,
+                        help="mean track length in frames (default: the preset's; the longest "
+                             "track is capped at 3x this mean, or the preset's cap if smaller)")
     parser.add_argument("--seed", type=int, default=None, help="master seed (default 0)")
     parser.add_argument("--num-points", type=int, default=None,
                         help="points of the complete shape per vehicle (default 2048)")
@@ -42,6 +47,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shard", default="1/1", metavar="K/N",
                         help="generate only part K of N (1-based, by vehicle); rerun without "
                              "--shard (or any shard) once all parts exist to write the manifest")
+
+
+def _lengths(args: argparse.Namespace) -> dict:
+    """``mean_frames`` / ``max_frames`` / ``min_frames`` overrides from ``--mean-frames``."""
+    if args.mean_frames is None:
+        return {}
+    from seqshape.sim.generate import PRESETS
+
+    base = PRESETS[args.preset]
+    mean = float(args.mean_frames)
+    return {"mean_frames": mean, "min_frames": min(base.min_frames, int(mean)),
+            "max_frames": max(int(mean), min(base.max_frames, int(3 * mean)))}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -61,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
                            num_points=args.num_points, meshes=meshes, trajectories=trajs,
                            mesh_up=args.mesh_up, mesh_forward=args.mesh_forward,
                            mesh_scale=args.mesh_scale, library=args.library,
-                           n_vehicles=args.n_vehicles)
+                           n_vehicles=args.n_vehicles,
+                           tracks_per_vehicle=args.tracks_per_vehicle, **_lengths(args))
     s = generate_dataset(config, args.out, workers=args.workers, shard=shard)
     print(f"{args.out}: {s.n_generated} tracks generated, {s.n_skipped} already there, "
           f"{s.n_tracks} in the preset ({s.seconds:.1f} s)")
