@@ -105,3 +105,20 @@ def test_union_of_dataset_folders(tmp_path):
     write_dataset(tmp_path / "c", [tr("a1", "train")])
     with pytest.raises(DataError, match="a1"):
         TrackDataset.union([tmp_path / "a", tmp_path / "c"])
+
+
+def test_union_fractions_keep_a_stable_share(tmp_path):
+    tracks = [Track(f"t{i:03d}", [np.zeros((1, 3), np.float32)], np.zeros((1, 4)), None,
+                    np.ones(3), np.zeros(1), {"split": "train"}) for i in range(400)]
+    write_dataset(tmp_path / "a", tracks)
+    t0 = tracks[0]
+    write_dataset(tmp_path / "b", [Track("b0", t0.points, t0.poses, None, t0.size,
+                                         t0.timestamps, {"split": "train"})])
+    u = TrackDataset.union([tmp_path / "a", tmp_path / "b"], [0.25, 1.0])
+    kept = [t for t in u.track_ids if t.startswith("t")]
+    assert 70 < len(kept) < 130 and "b0" in u.track_ids
+    assert TrackDataset.union([tmp_path / "a", tmp_path / "b"], [0.25, 1.0]).track_ids == u.track_ids
+    smaller = set(TrackDataset.union([tmp_path / "a", tmp_path / "b"], [0.1, 1.0]).track_ids)
+    assert smaller < set(u.track_ids)  # a smaller share is a subset of a larger one
+    with pytest.raises(ValueError, match="fraction"):
+        TrackDataset.union([tmp_path / "a"], [0.0])

@@ -91,15 +91,23 @@ class TrackDataset:
         return TrackDataset(self.path, _entries=entries)
 
     @classmethod
-    def union(cls, paths) -> TrackDataset:
+    def union(cls, paths, fractions=None) -> TrackDataset:
         """Several dataset folders as one dataset (entries' files made absolute); track ids
-        must be unique across them. One path gives that dataset itself."""
+        must be unique across them. ``fractions`` (one per path, in (0, 1]) keeps that share of
+        each folder's tracks, chosen by a stable hash of the track id (the same tracks on every
+        run and machine). One path and no fraction gives that dataset itself."""
         paths = [Path(p) for p in paths]
-        if len(paths) == 1:
+        fractions = [1.0] * len(paths) if fractions is None else [float(f) for f in fractions]
+        if len(fractions) != len(paths) or not all(0.0 < f <= 1.0 for f in fractions):
+            raise ValueError(f"need one fraction in (0, 1] per dataset, got {fractions} for "
+                             f"{len(paths)} datasets")
+        if len(paths) == 1 and fractions[0] == 1.0:
             return cls(paths[0])
         entries, seen = [], {}
-        for p in paths:
+        for p, frac in zip(paths, fractions, strict=True):
             for e in cls(p).entries:
+                if frac < 1.0 and _unit_hash(e["track_id"]) >= frac:
+                    continue
                 if e["track_id"] in seen:
                     raise DataError(p, f"track id {e['track_id']!r} is also in {seen[e['track_id']]}"
                                        f": datasets with shared ids cannot be joined")
@@ -116,6 +124,13 @@ class TrackDataset:
 
     def __repr__(self) -> str:
         return f"TrackDataset({str(self.path)!r}, {len(self)} tracks)"
+
+
+def _unit_hash(text: str) -> float:
+    """A stable number in [0, 1) from ``text`` (first 8 bytes of its SHA-1)."""
+    import hashlib
+
+    return int.from_bytes(hashlib.sha1(text.encode()).digest()[:8], "big") / 2.0**64
 
 
 def manifest_entry(track: Track, file: str) -> dict[str, Any]:

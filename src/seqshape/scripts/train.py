@@ -22,6 +22,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True, nargs="+",
                         help="track dataset folder(s) (train/val splits); several folders are "
                              "trained on as one dataset (e.g. the paper preset and a real one)")
+    parser.add_argument("--data-fraction", type=float, nargs="+", default=None, metavar="F",
+                        help="with several --data folders: the share of each folder's tracks "
+                             "to use, one value per folder in (0, 1] (chosen by a stable hash "
+                             "of the track id), to balance a large dataset against a small one")
     parser.add_argument("--out", required=True, help="run folder (checkpoints, logs, model.pt)")
     parser.add_argument("--model", choices=("sequential", "baseline"), default="sequential")
     parser.add_argument("--preset", default="small",
@@ -120,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from seqshape.train.trainer import Trainer
 
     trainer = Trainer(args.data, args.out, args.model, build_config(args), resume=args.resume,
+                      data_fractions=args.data_fraction,
                       init=args.init)
     path = trainer.run()
     if trainer.is_main:

@@ -81,12 +81,14 @@ class Trainer:
     """
 
     def __init__(self, data: str | Path, out: str | Path, kind: str, cfg: TrainConfig,
-                 resume: bool = False, init: str | Path | None = None):
+                 resume: bool = False, init: str | Path | None = None,
+                 data_fractions: list[float] | None = None):
         if kind not in KINDS:
             raise ConfigError(f"unknown model kind {kind!r}; choose from {KINDS}")
         self.out, self.kind = Path(out), kind
         self.data_paths = [Path(d) for d in ([data] if isinstance(data, str | Path) else data)]
         self.data = self.data_paths[0]
+        self.data_fractions = data_fractions
         self.rank, self.world = _init_distributed()
         self.is_main = self.rank == 0
         payload = self._resume_payload(resume)
@@ -95,7 +97,10 @@ class Trainer:
         self.cfg = cfg
         torch.set_num_threads(cfg.threads)
         torch.use_deterministic_algorithms(True, warn_only=True)
-        dataset = TrackDataset.union(self.data_paths)
+        try:
+            dataset = TrackDataset.union(self.data_paths, self.data_fractions)
+        except ValueError as exc:
+            raise ConfigError(f"--data-fraction: {exc}") from None
         self.train_tracks = _trainable(dataset.split("train"), "train")
         try:
             self.val_tracks: TrackDataset | None = _trainable(dataset.split("val"), "val")
@@ -404,6 +409,7 @@ class Trainer:
         if self.is_main:
             atomic_write_json(self.out / "config.json", {
                 "kind": self.kind, "data": ", ".join(map(str, self.data_paths)),
+                "data_fractions": self.data_fractions,
                 "world_size": self.world,
                 "train_config": self.cfg.to_dict(),
                 "model_config": self.model.cfg.to_dict(), "init": self.init})
