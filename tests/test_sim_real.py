@@ -23,6 +23,7 @@ from seqshape.sim.generate import (
     preset_config,
 )
 from seqshape.sim.sensors import get_sensor, mount_rotation
+from seqshape.vehicles.fleet import FLEET_KINDS
 
 GLASS, BODY, TYRE = 1, 0, 2
 SMALL = dict(n_vehicles=4, n_val_vehicles=1, tracks_per_vehicle=1, min_frames=6, max_frames=10,
@@ -317,6 +318,7 @@ def test_real_track_content(real_small):
         assert 1.5 <= meta["real"]["sensor_height"] <= 2.2
         assert abs(meta["real"]["pitch_deg"]) <= 1.5 and abs(meta["real"]["roll_deg"]) <= 1.5
         assert meta["jitter"] == json.loads(json.dumps(real.TrackerJitter().__dict__))
+        assert meta["class"] == v.cls == FLEET_KINDS[meta["kind"]]
         boxes = np.asarray(meta["crop_boxes"])
         assert boxes.shape == (len(tr), 7)
         # exact ground-truth poses, jittered crop boxes around them

@@ -245,7 +245,7 @@ def make_real_track(i: int) -> Track:
             "split": payload.splits[v], "generator": "seqshape.sim.generate",
             "generator_version": _generator_version(), "preset": cfg.name, "seed": cfg.seed,
             "track_index": i, "manoeuvre": traj.manoeuvre, "trajectory_source": traj.source,
-            "ground": True, "noise": True, "occluders": occ_ids,
+            "ground": True, "noise": True, "occluders": occ_ids, "class": _vehicle_class(kind),
             "real": {"sensor_height": height, "pitch_deg": float(np.degrees(pitch)),
                      "roll_deg": float(np.degrees(roll)), "ground_slope": [sx, sy],
                      "paint_reflectivity": paint, "clutter": [k for _, _, k in clutter],
@@ -254,6 +254,15 @@ def make_real_track(i: int) -> Track:
             "crop_boxes": np.round(boxes, 4).tolist(),
             "sources": {name: counts[:, k].tolist() for k, name in enumerate(real.SOURCES)}}
     return Track(plan.track_id(i), points, poses, _complete(v), size, traj.t, meta)
+
+
+def _vehicle_class(kind: str) -> str | None:
+    """seqshape's vehicle class of a fleet or procedural kind (None for user meshes)."""
+    from seqshape.vehicles.fleet import FLEET_KINDS
+
+    if kind in FLEET_KINDS:
+        return FLEET_KINDS[kind]
+    return {"van": "van", "user": None}.get(kind, "car")
 
 
 def _generator_version() -> int:
