@@ -56,8 +56,10 @@ def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> No
         sys.exit(f"seqshape tracks failed on {root}")
 
 
-def evaluate(data: Path, out: Path, checkpoint: str, split: str) -> dict:
+def evaluate(data: Path, out: Path, checkpoint: str, split: str,
+             baseline: str = "pretrained") -> dict:
     if _quiet(["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
+               "--baseline", baseline,
              "--split", split, "--workers", "1", "--emd-every", "0", "--view", "none"]) != 0:
         sys.exit(f"seqshape evaluate failed on {data}")
     return json.loads((out / "metrics.json").read_text())
@@ -100,6 +102,7 @@ def main() -> int:
     ap.add_argument("--sequence", action="append", default=None, help="log(s); default all")
     ap.add_argument("--out", type=Path, default=None, help="work folder (default: temporary)")
     ap.add_argument("--checkpoint", default="pretrained", help="sequential model to evaluate")
+    ap.add_argument("--baseline", default="pretrained", help="baseline model to evaluate")
     ap.add_argument("--finetune-steps", type=int, default=0,
                     help="also fine-tune the sequential model this many stage-3 steps on the "
                          "logs' own references and evaluate again (0: no)")
@@ -110,8 +113,8 @@ def main() -> int:
         return 0
     work = args.out or Path(tempfile.mkdtemp(prefix="bm_realdata_"))
     extract(args.dataset, args.root, work / "tracks", args.sequence, "log")
-    tables(evaluate(work / "tracks", work / "eval", args.checkpoint, "all"),
-           f"{args.dataset}: {args.checkpoint} weights, all frames")
+    tables(evaluate(work / "tracks", work / "eval", args.checkpoint, "all", args.baseline),
+           f"{args.dataset}: {args.checkpoint} / {args.baseline} weights, all frames")
     if args.finetune_steps > 0:
         extract(args.dataset, args.root, work / "ft_tracks", args.sequence, "track")
         run = work / "ft_run"
