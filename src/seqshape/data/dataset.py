@@ -126,6 +126,33 @@ class TrackDataset:
         return f"TrackDataset({str(self.path)!r}, {len(self)} tracks)"
 
 
+def check_folder_settings(out: Path, config_file: str, cfg: dict, made: str) -> None:
+    """Write ``OUT/config_file`` or check it matches ``cfg``: one folder, one set of settings.
+
+    ``made`` says how the folder's tracks were made, for the message ("generated", "extracted").
+    A folder with tracks but no settings file is refused too.
+    """
+    from seqshape._io import atomic_write_json
+    from seqshape.errors import ConfigError
+
+    path = Path(out) / config_file
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise DataError(path, f"invalid JSON ({exc})") from None
+        diff = sorted(k for k in set(old) | set(cfg) if old.get(k) != cfg.get(k))
+        if diff:
+            detail = ", ".join(f"{k}: {old.get(k)!r} there vs {cfg.get(k)!r} now" for k in diff)
+            raise ConfigError(f"{out} holds tracks {made} with other settings ({detail}); "
+                              f"use another --out folder or rerun with the same options")
+        return
+    if (Path(out) / MANIFEST).is_file() or any((Path(out) / "tracks").glob("*.npz")):
+        raise ConfigError(f"{out} already holds tracks but no {config_file}; use another "
+                          f"--out folder")
+    atomic_write_json(path, cfg)
+
+
 def _unit_hash(text: str) -> float:
     """A stable number in [0, 1) from ``text`` (first 8 bytes of its SHA-1)."""
     import hashlib

@@ -105,26 +105,9 @@ def marker_path(out: Path, dataset: str, log: str) -> Path:
 
 def _check_config(out: Path, cfg: dict) -> None:
     """Write ``tracks.json`` or check it matches: one folder, one set of settings."""
-    from seqshape._io import atomic_write_json
-    from seqshape.data.dataset import MANIFEST
-    from seqshape.errors import ConfigError, DataError
+    from seqshape.data.dataset import check_folder_settings
 
-    path = out / CONFIG_FILE
-    if path.is_file():
-        try:
-            old = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise DataError(path, f"invalid JSON ({exc})") from None
-        diff = sorted(k for k in set(old) | set(cfg) if old.get(k) != cfg.get(k))
-        if diff:
-            detail = ", ".join(f"{k}: {old.get(k)!r} there vs {cfg.get(k)!r} now" for k in diff)
-            raise ConfigError(f"{out} holds tracks extracted with other settings ({detail}); "
-                              f"use another --out folder or rerun with the same options")
-        return
-    if (out / MANIFEST).is_file() or any((out / "tracks").glob("*.npz")):
-        raise ConfigError(f"{out} already holds tracks but no {CONFIG_FILE}; use another "
-                          f"--out folder")
-    atomic_write_json(path, cfg)
+    check_folder_settings(out, CONFIG_FILE, cfg, "extracted")
 
 
 # ----------------------------------------------------------------------------- log selection

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seqshape.data.dataset import MANIFEST, manifest_entry, write_manifest
+from seqshape.data.dataset import manifest_entry, write_manifest
 from seqshape.data.track import Track, load_track
 from seqshape.errors import ConfigError, DataError
 from seqshape.sim import _worker as _tracks
@@ -171,24 +171,9 @@ def config_dict(config: GenerateConfig) -> dict:
 
 def _check_config(out: Path, cfg: dict) -> None:
     """Write ``generate.json`` or check it matches: one folder, one config."""
-    from seqshape._io import atomic_write_json
+    from seqshape.data.dataset import check_folder_settings
 
-    path = out / CONFIG_FILE
-    if path.is_file():
-        try:
-            old = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise DataError(path, f"invalid JSON ({exc})") from None
-        diff = sorted(k for k in set(old) | set(cfg) if old.get(k) != cfg.get(k))
-        if diff:
-            detail = ", ".join(f"{k}: {old.get(k)!r} there vs {cfg.get(k)!r} now" for k in diff)
-            raise ConfigError(f"{out} holds a dataset generated with another config ({detail}); "
-                              f"use another --out folder or rerun with the same options")
-        return
-    if (out / MANIFEST).is_file() or any((out / "tracks").glob("*.npz")):
-        raise ConfigError(f"{out} already holds tracks but no {CONFIG_FILE}; use another "
-                          f"--out folder")
-    atomic_write_json(path, cfg)
+    check_folder_settings(out, CONFIG_FILE, cfg, "generated")
 
 
 def vehicles_digest(vehicles) -> str:
