@@ -59,9 +59,9 @@ EXTRA_LABELS = {"shape_cd_cm": "shape CD at the true pose (cm)",
                 "ref_to_est_cm": "reference to estimate, one-way (cm)"}
 EXTRA_NOTES = {"shape_cd_cm": "the estimated shape alone, placed at the true pose; CD minus this "
                               "is the cost of the estimated placement",
-               "ref_to_est_cm": "mean distance from each reference point to the estimate: the "
-                                "half of the CD that an accumulated reference, which lacks the "
-                                "unseen sides, can judge"}
+               "ref_to_est_cm": "mean distance from each ground-truth or reference point to the "
+                                "estimate: on real tracks, the half of the CD that an "
+                                "accumulated reference, which lacks the unseen sides, can judge"}
 REAL_CD_LABEL = "CD vs accumulated reference (cm)"
 #: A rotation error above this (degrees) counts as a 180-degree flip: the box faces backwards.
 FLIP_DEG = 150.0
