@@ -66,29 +66,27 @@ class CropConfig:
         return asdict(self)
 
 
-def _near(points: np.ndarray, pose, size, reach_extra: float) -> np.ndarray:
-    """Indices of the points within the box's bounding circle grown by ``reach_extra`` (x, y)."""
+def _surroundings(points: np.ndarray, pose, size, reach_extra: float):
+    """The points within the box's bounding circle grown by ``reach_extra`` (x, y), as float64
+    in the sensor frame and in the box's own frame: ``(near (K, 3), local (K, 3))``."""
     reach = float(np.hypot(size[0] / 2, size[1] / 2)) + reach_extra
-    return np.flatnonzero((np.abs(points[:, 0] - pose[0]) <= reach)
-                          & (np.abs(points[:, 1] - pose[1]) <= reach))
+    idx = np.flatnonzero((np.abs(points[:, 0] - pose[0]) <= reach)
+                         & (np.abs(points[:, 1] - pose[1]) <= reach))
+    near = points[idx].astype(np.float64)
+    return near, sensor_to_canonical(near, pose)
 
 
-def local_ground(points, pose, size, cfg: CropConfig = CropConfig()):
-    """The ground plane ``(n, d)`` around a box (module doc, step 2), or None (too few points)."""
-    pts = np.asarray(points)[:, :3]
-    pose = np.asarray(pose, dtype=np.float64)
-    size = np.asarray(size, dtype=np.float64)
-    idx = _near(pts, pose, size, cfg.context)
-    cand = pts[idx].astype(np.float64)
-    if len(cand) < cfg.min_ground_points:
+def _ground_from(near: np.ndarray, local: np.ndarray, size: np.ndarray, cfg: CropConfig):
+    """The local ground plane from the box's surroundings (``_surroundings`` with a reach of at
+    least ``cfg.context``), or None."""
+    if len(near) < cfg.min_ground_points:
         return None
-    local = sensor_to_canonical(cand, pose)
     bottom = -size[2] / 2
     ax, ay = np.abs(local[:, 0]), np.abs(local[:, 1])
     keep = ((ax <= size[0] / 2 + cfg.context) & (ay <= size[1] / 2 + cfg.context)
             & ((ax > size[0] / 2) | (ay > size[1] / 2))
             & (local[:, 2] >= bottom - cfg.band_below) & (local[:, 2] <= bottom + cfg.band_above))
-    cand = cand[keep]
+    cand = near[keep]
     if len(cand) < cfg.min_ground_points:
         return None
     rng = np.random.default_rng(cfg.seed)
@@ -103,30 +101,38 @@ def local_ground(points, pose, size, cfg: CropConfig = CropConfig()):
     return n, float(d)
 
 
+def local_ground(points, pose, size, cfg: CropConfig = CropConfig()):
+    """The ground plane ``(n, d)`` around a box (module doc, step 2), or None (too few points)."""
+    pose = np.asarray(pose, dtype=np.float64)
+    size = np.asarray(size, dtype=np.float64)
+    near, local = _surroundings(np.asarray(points)[:, :3], pose, size, cfg.context)
+    return _ground_from(near, local, size, cfg)
+
+
 def crop_vehicle(points, pose, size, cfg: CropConfig = CropConfig(),
                  sweep_plane=None) -> np.ndarray:
     """The points of one vehicle: ``points (N, 3+)`` of a sweep, the vehicle's box ``pose``
     (x, y, z, yaw) and ``size`` (l, w, h) in the sweep's sensor frame -> ``(M, 3)`` float32.
 
     ``sweep_plane``: the sweep's ground plane ``(n, d)`` (or a function returning it, called
-    only when needed), used where the local fit fails.
+    only when needed), used where the local fit fails. The sweep is scanned and transformed
+    into the box frame once, for the crop and the ground fit together.
     """
-    pts = np.asarray(points)[:, :3]
     pose = np.asarray(pose, dtype=np.float64)
     size = np.asarray(size, dtype=np.float64)
-    idx = _near(pts, pose, size, cfg.margin)
-    cand = pts[idx]
+    reach = max(cfg.margin, cfg.context) if cfg.ground == "plane" else cfg.margin
+    near, local = _surroundings(np.asarray(points)[:, :3], pose, size, reach)
     half = size / 2 + [cfg.margin, cfg.margin, cfg.margin_z]
-    cand = cand[np.all(np.abs(sensor_to_canonical(cand.astype(np.float64), pose)) <= half, axis=1)]
+    inbox = np.all(np.abs(local) <= half, axis=1)
+    cand = near[inbox]
     if cfg.ground == "none" or len(cand) == 0:
         return np.ascontiguousarray(cand, dtype=np.float32)
-    plane = local_ground(pts, pose, size, cfg) if cfg.ground == "plane" else None
+    plane = _ground_from(near, local, size, cfg) if cfg.ground == "plane" else None
     if plane is None and cfg.ground == "plane":
         plane = sweep_plane() if callable(sweep_plane) else sweep_plane
-    c64 = cand.astype(np.float64)
     if plane is not None:
         n, d = plane
-        above = c64 @ np.asarray(n, dtype=np.float64) + d >= cfg.ground_threshold
+        above = cand @ np.asarray(n, dtype=np.float64) + d >= cfg.ground_threshold
     else:
-        above = sensor_to_canonical(c64, pose)[:, 2] >= -size[2] / 2 + cfg.box_ground
+        above = local[inbox, 2] >= -size[2] / 2 + cfg.box_ground
     return np.ascontiguousarray(cand[above], dtype=np.float32)
