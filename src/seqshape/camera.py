@@ -55,8 +55,22 @@ _ALIASES = {alias: key for key, (aliases, _) in _KEYS.items() for alias in alias
 _REQUIRED = ("P2", "R_rect", "Tr_velo_cam")
 
 
+class _ImageSize:
+    """``width`` and ``height`` of a class with ``image_size = (width, height)``."""
+
+    image_size: tuple[int, int]
+
+    @property
+    def width(self) -> int:
+        return self.image_size[0]
+
+    @property
+    def height(self) -> int:
+        return self.image_size[1]
+
+
 @dataclass
-class KittiCalib:
+class KittiCalib(_ImageSize):
     """KITTI calibration of one sequence (or one object-dataset frame).
 
     ``P0..P3`` (3, 4) project rectified camera-0 points to camera i's pixels; ``R_rect`` (3, 3)
@@ -104,14 +118,6 @@ class KittiCalib:
         """The (3, 3) intrinsic matrix K of camera ``cam`` (left block of its P)."""
         return self.P(cam)[:, :3].copy()
 
-    @property
-    def width(self) -> int:
-        return self.image_size[0]
-
-    @property
-    def height(self) -> int:
-        return self.image_size[1]
-
     def camera(self, cam: int = 2) -> PinholeCamera:
         """Camera ``cam`` as a generic :class:`PinholeCamera` of the velodyne (sensor) frame."""
         return PinholeCamera(name=f"image_{cam:02d}", P=self.P(cam), T_cam_sensor=self.velo_to_rect,
@@ -119,7 +125,7 @@ class KittiCalib:
 
 
 @dataclass
-class PinholeCamera:
+class PinholeCamera(_ImageSize):
     """A pinhole camera looking at a LiDAR's sensor frame (any dataset).
 
     ``T_cam_sensor`` (4, 4) maps sensor-frame points (x forward, y left, z up) into the
@@ -184,14 +190,6 @@ class PinholeCamera:
     def K(self) -> np.ndarray:
         """(3, 3) intrinsic matrix (left block of ``P``)."""
         return self.P[:, :3].copy()
-
-    @property
-    def width(self) -> int:
-        return self.image_size[0]
-
-    @property
-    def height(self) -> int:
-        return self.image_size[1]
 
     @property
     def matrix(self) -> np.ndarray:
