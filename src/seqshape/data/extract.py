@@ -40,7 +40,7 @@ import numpy as np
 
 from seqshape.data.crop import CropConfig, crop_vehicle
 from seqshape.data.ground import ground_plane
-from seqshape.data.sequence import DrivingLog
+from seqshape.data.sequence import VEHICLE_CLASSES, DrivingLog
 from seqshape.data.track import Track
 
 _log = logging.getLogger(__name__)
@@ -75,8 +75,6 @@ def extract_tracks(log: DrivingLog, classes: Iterable[str] | None = None,
     kept when at least one of its frames has that many points after the crop; ``frames``: only
     these frames of the log (default all).
     """
-    from seqshape.data.sequence import VEHICLE_CLASSES
-
     wanted = set(VEHICLE_CLASSES if classes is None else classes)
     crop = crop or CropConfig()
     rows: dict[str, list[tuple]] = {}
