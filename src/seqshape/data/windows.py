@@ -14,6 +14,15 @@ Item ``i`` of :class:`WindowDataset` is a window of track ``i // windows_per_tra
     start     int64   ()          first frame index of the window in its track
     length    float32 (W,)        vehicle length L per frame for the input scale (only when
                                   ``length_hint_noise`` is set; see below)
+    dts       float32 (W,)        time (s) from the track's previous frame to this one (only
+                                  with ``motion``; 0 at the window's first frame, NaN where a
+                                  timestamp is unknown: the network then assumes its frame
+                                  period)
+    counts    int64   (W,)        points per frame before resampling to N (only with ``motion``)
+
+The motion inputs (``ModelConfig.motion_input``) treat a window like a fresh track: its first
+frame with points has no "previous" detection (zero displacement and time), exactly as the
+``Estimator`` does at a track's first step, wherever the window starts.
 
 Input-scale lengths (``ModelConfig.scale_norm="length"``): per window, with probability
 ``length_points_prob`` the points' own estimate (:func:`points_length`, the running maximum
@@ -138,13 +147,15 @@ class WindowDataset(torch.utils.data.Dataset):
             a dataset without the option) or the log-normal sigma of a tracker's box length.
         length_points_prob: probability that a window's lengths come from its points.
         length_running: points lengths are running maxima (sequential) or per frame.
+        motion: add ``dts`` and ``counts`` (the motion inputs' time steps and raw point
+            counts; no random draws, so the other entries are unchanged).
     """
 
     def __init__(self, tracks: TrackDataset, window: int = 8, num_points: int = 256,
                  num_complete: int = 1024, windows_per_track: int = 1, p_first: float = 0.25,
                  seed: int = 0, key: int = 0, cache_size: int = 128,
                  length_hint_noise: float | None = None, length_points_prob: float = 0.0,
-                 length_running: bool = True):
+                 length_running: bool = True, motion: bool = False):
         if len(tracks) == 0:
             raise DataError(tracks.path, "no tracks to draw training windows from")
         self.cache = TrackCache(tracks, cache_size)
@@ -159,6 +170,7 @@ class WindowDataset(torch.utils.data.Dataset):
         self.length_hint_noise = None if length_hint_noise is None else float(length_hint_noise)
         self.length_points_prob = float(length_points_prob)
         self.length_running = bool(length_running)
+        self.motion = bool(motion)
 
     def __len__(self) -> int:
         return len(self.cache) * self.windows_per_track
@@ -196,6 +208,8 @@ class WindowDataset(torch.utils.data.Dataset):
                "complete": track.complete[idx].astype(np.float32), "start": np.int64(start)}
         if self.length_hint_noise is not None:  # drawn last: the rest stays as without it
             out["length"] = self._lengths(track, points, lengths, rng)
+        if self.motion:
+            out["dts"], out["counts"] = window_motion(track, start, n, w)
         return out
 
     def _lengths(self, track: Track, points: np.ndarray, lengths: np.ndarray,
@@ -206,6 +220,20 @@ class WindowDataset(torch.utils.data.Dataset):
             return running_lengths(per_frame, self.length_running).astype(np.float32)
         log_noise = rng.normal(0.0, sigma) + rng.normal(0.0, sigma / 3.0, size=w)
         return (float(track.size[0]) * np.exp(log_noise)).astype(np.float32)
+
+
+def window_motion(track: Track, start: int, n: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """``dts`` (W,) float32 and ``counts`` (W,) int64 of the window of ``n`` real frames of
+    ``track`` from ``start`` (padded to ``w``): time steps from the previous frame (0 at the
+    window's first frame and on padding, NaN where a timestamp is not finite) and raw point
+    counts. Differences are taken in float64 before the cast (timestamps can be ~1e9 s)."""
+    dts = np.zeros(w, np.float32)
+    ts = np.asarray(track.timestamps[start:start + n], dtype=np.float64)
+    if n > 1:
+        dts[1:n] = np.diff(ts)  # NaN stays NaN
+    counts = np.zeros(w, np.int64)
+    counts[:n] = [len(track.points[start + k]) for k in range(n)]
+    return dts, counts
 
 
 def collate(items: Sequence[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:

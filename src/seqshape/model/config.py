@@ -16,6 +16,9 @@ import torch
 from seqshape.errors import ConfigError
 
 SCALE_NORMS = ("none", "length")
+#: Size of the motion vector m_t (``ModelConfig.motion_input``): displacement (3), time since
+#: the last detection (1), point count (1), viewing direction (2).
+MOTION_SIZE = 7
 #: Frozen-weights-compatible fields: they add no parameters, so ``--init`` accepts weights
 #: whose configuration differs from the run's only in these (see ``load_init``).
 PARAMETER_FREE_FIELDS = ("scale_norm", "scale_ref", "scale_max")
@@ -71,6 +74,17 @@ class ModelConfig:
     """L_ref (m): lengths up to this give s = 1 (the shipped weights saw cars 3.6-5.8 m)."""
     scale_max: float = 4.0
     """Upper clip of s (a 24 m vehicle)."""
+    motion_input: bool = False
+    """Extension (issue 19; sequential model only): the GRU input is ``[f_t, m_t]`` with the
+    7-vector m_t of :func:`seqshape.model.network.motion_features` per frame: the change of
+    the frame mean since the track's last frame with points (3, divided by the input scale s,
+    clipped to +-``MOTION_CLIP`` m; zero at the track's first detection), the time since that
+    detection (s, clipped to [0, 2]; zero at the first detection), the frame's point count
+    before resampling as log1p(n) / log1p(1000), and the bird's-eye unit direction from the
+    sensor to the frame mean (x, y). Demeaning removes all of these. The GRU's extra input
+    columns start at zero, so a model without the option loads unchanged (``--init``, the
+    columns padded with zeros) and begins computing exactly what it did. The carried state
+    gains the time since the last detection. Ignored by the baseline."""
 
     def __post_init__(self):
         for name in ("encoder1", "encoder2", "shape_decoder", "pose_decoder"):
@@ -88,6 +102,9 @@ class ModelConfig:
         if not (float(self.scale_ref) > 0 and float(self.scale_max) >= 1):
             raise ConfigError(f"ModelConfig needs scale_ref > 0 and scale_max >= 1, got "
                               f"{self.scale_ref!r}, {self.scale_max!r}")
+        if not isinstance(self.motion_input, bool):
+            raise ConfigError(f"ModelConfig.motion_input must be true or false, got "
+                              f"{self.motion_input!r}")
         object.__setattr__(self, "scale_ref", float(self.scale_ref))
         object.__setattr__(self, "scale_max", float(self.scale_max))
         for name in ("num_points", "hidden", "num_complete"):
@@ -98,6 +115,12 @@ class ModelConfig:
     def feature_size(self) -> int:
         """Size of the frame feature f_t."""
         return self.encoder2[-1]
+
+    @property
+    def motion_size(self) -> int:
+        """Size of the motion vector m_t the GRU reads besides f_t (0 without
+        ``motion_input``)."""
+        return MOTION_SIZE if self.motion_input else 0
 
     def scale_for(self, length):
         """Input scale ``s = clip(length / scale_ref, 1, scale_max)`` for vehicle lengths (m):

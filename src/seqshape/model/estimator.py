@@ -9,7 +9,8 @@ Optional per-track inputs of :meth:`Estimator.step` (all default to None = unkno
 ``sizes`` (a tracker's / annotator's box (l, w, h) or a length; sets the input scale of a
 ``scale_norm="length"`` model), ``classes`` (vehicle class: a floor on that length) and
 ``ego_poses`` ((4, 4) sensor frame of this frame -> a fixed frame: lets the heading
-post-processing (:mod:`seqshape.model.heading`) use the track's motion).
+post-processing (:mod:`seqshape.model.heading`) use the track's motion) and ``timestamps``
+(s; the time steps of a ``motion_input`` model, else one ``frame_period`` per step).
 
 Weight files (checkpoints and exported ``model.pt``) are plain dicts read with
 ``torch.load(weights_only=True)``::
@@ -36,7 +37,7 @@ from seqshape.data.windows import points_length, resample_frame
 from seqshape.errors import ConfigError, DataError
 from seqshape.model.config import ModelConfig
 from seqshape.model.heading import HeadingConfig, HeadingFilter, wrap_angle
-from seqshape.model.network import ShapePoseNet
+from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +113,8 @@ class _TrackState:
     rng: np.random.Generator
     length: float = 0.0  # points' length estimate: running max (sequential) or last frame's
     heading: HeadingFilter | None = None
+    gap: float = 0.0  # time (s) since the last frame with points (motion inputs)
+    last_time: float | None = None  # timestamp (s) of the track's last step, when given
 
 
 class Estimator:
@@ -123,11 +126,18 @@ class Estimator:
         seed: seeds the per-track random subsets of frames with more than N points.
         heading: the heading post-processing (:class:`HeadingConfig`; None = the defaults,
             which act only on steps given ego poses).
+        frame_period: seconds between a track's consecutive steps assumed by a
+            ``motion_input`` model when :meth:`step` gets no timestamp (10 Hz by default).
     """
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None, seed: int = 0,
-                 metrics: dict | None = None, heading: HeadingConfig | None = None):
+                 metrics: dict | None = None, heading: HeadingConfig | None = None,
+                 frame_period: float = DEFAULT_FRAME_PERIOD):
         self.model = model.eval()
+        if not (np.isfinite(frame_period) and frame_period > 0):
+            raise ConfigError(f"frame_period must be a positive number of seconds, got "
+                              f"{frame_period!r}")
+        self.frame_period = float(frame_period)
         self.heading = heading or HeadingConfig()
         self.seed = int(seed)
         self.metrics = dict(metrics or {})
@@ -138,16 +148,19 @@ class Estimator:
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "cpu",
                         threads: int | None = None, seed: int = 0,
-                        heading: HeadingConfig | None = None) -> Estimator:
+                        heading: HeadingConfig | None = None,
+                        frame_period: float = DEFAULT_FRAME_PERIOD) -> Estimator:
         """Load a training checkpoint or an exported ``model.pt`` (CPU inference)."""
         if device != "cpu":
             raise ConfigError(f"Estimator runs on the CPU; got device {device!r}")
         payload = read_model_file(path)
-        return cls(build_model(payload, path), threads, seed, payload.get("metrics"), heading)
+        return cls(build_model(payload, path), threads, seed, payload.get("metrics"), heading,
+                   frame_period)
 
     @classmethod
     def from_pretrained(cls, kind: str = "sequential", threads: int | None = None,
-                        seed: int = 0, heading: HeadingConfig | None = None) -> Estimator:
+                        seed: int = 0, heading: HeadingConfig | None = None,
+                        frame_period: float = DEFAULT_FRAME_PERIOD) -> Estimator:
         """The shipped weights ``seqshape/pretrained/<kind>.pt``."""
         if kind not in KINDS:
             raise ConfigError(f"unknown pretrained model {kind!r}; choose from {KINDS}")
@@ -156,7 +169,8 @@ class Estimator:
             raise DataError(path, f"shipped {kind} weights are missing from this installation; "
                                   f"train them with `seqshape train --model {kind}` and use "
                                   f"Estimator.from_checkpoint(RUN/model.pt)")
-        return cls.from_checkpoint(path, threads=threads, seed=seed, heading=heading)
+        return cls.from_checkpoint(path, threads=threads, seed=seed, heading=heading,
+                                   frame_period=frame_period)
 
     @property
     def recurrent(self) -> bool:
@@ -192,13 +206,14 @@ class Estimator:
         return st
 
     def _prepare(self, states: list[_TrackState], point_lists: Sequence[np.ndarray]):
-        frames, lengths = [], []
+        frames, lengths, counts = [], [], []
         n_max = self.model.cfg.num_points
         for i, (st, pts) in enumerate(zip(states, point_lists, strict=True)):
             pts = np.asarray(pts, dtype=np.float32)
             if pts.ndim != 2 or pts.shape[1] != 3:
                 raise ConfigError(f"point_lists[{i}] must have shape (N, 3), got {pts.shape}")
             pts = pts[np.all(np.isfinite(pts), axis=1)]
+            counts.append(len(pts))
             frames.append(pts if len(pts) <= n_max else resample_frame(pts, n_max, st.rng)[0])
             lengths.append(len(frames[-1]))
         n = max(1, max(lengths))  # pad only to the largest frame of this batch
@@ -207,7 +222,7 @@ class Estimator:
             if len(f):
                 batch[i, 0] = np.resize(f, (n, 3))
         return (torch.from_numpy(batch), torch.tensor(lengths, dtype=torch.int64)[:, None],
-                frames)
+                frames, torch.tensor(counts, dtype=torch.int64)[:, None])
 
     def _scales(self, states: list[_TrackState], frames: list[np.ndarray],
                 sizes: Sequence | None, classes: Sequence | None) -> torch.Tensor | None:
@@ -231,6 +246,20 @@ class Estimator:
             out.append(cfg.scale_for(hint))
         return torch.tensor(out, dtype=torch.float32)[:, None]
 
+    def _motion(self, states: list[_TrackState], timestamps: Sequence | None
+                ) -> dict[str, torch.Tensor]:
+        """``dts`` (B, 1) and ``gap`` (B,) of a ``motion_input`` model for this step; advances
+        each track's ``last_time``. dt is this step's timestamp minus the track's previous
+        step's when both are known, else :attr:`frame_period`."""
+        dts = []
+        for i, st in enumerate(states):
+            ts = _timestamp(timestamps, i)
+            known = ts is not None and st.last_time is not None
+            dts.append(ts - st.last_time if known else self.frame_period)
+            st.last_time = ts
+        return {"dts": torch.tensor(dts, dtype=torch.float64).float()[:, None],
+                "gap": torch.tensor([st.gap for st in states], dtype=torch.float32)}
+
     def _fix_headings(self, result: list[Estimate], states: list[_TrackState],
                       ego_poses: Sequence | None) -> None:
         """The heading post-processing (:mod:`seqshape.model.heading`), in place."""
@@ -246,7 +275,8 @@ class Estimator:
 
     def step(self, track_ids: Sequence[str], point_lists: Sequence[np.ndarray],
              sizes: Sequence | None = None, classes: Sequence[str | None] | None = None,
-             ego_poses: Sequence[np.ndarray | None] | None = None) -> list[Estimate]:
+             ego_poses: Sequence[np.ndarray | None] | None = None,
+             timestamps: Sequence[float | None] | None = None) -> list[Estimate]:
         """Advance each listed track by one frame, all in one forward pass.
 
         ``point_lists[i]`` is track ``track_ids[i]``'s (N_i, 3) points in its current sensor
@@ -257,13 +287,17 @@ class Estimator:
         ``classes[i]`` a vehicle class (car, van, truck, bus, trailer: a floor on the points'
         length estimate, :data:`CLASS_MIN_LENGTH`; likewise only used by such a model);
         ``ego_poses[i]`` (4, 4) this frame's sensor frame -> a fixed frame (the same for all
-        the track's steps), for the heading post-processing. Returns one :class:`Estimate`
-        per track, in order.
+        the track's steps), for the heading post-processing; ``timestamps[i]`` this frame's
+        time (s, any origin, the same clock for all the track's steps) for the motion inputs
+        of a ``motion_input`` model (a missing or NaN one, or the track's first, counts as
+        :attr:`frame_period` after the previous step). Returns one :class:`Estimate` per
+        track, in order.
         """
         track_ids = [str(t) for t in track_ids]
         if len(track_ids) != len(point_lists):
             raise ConfigError(f"{len(track_ids)} track ids but {len(point_lists)} point lists")
-        for name, hints in (("sizes", sizes), ("classes", classes), ("ego_poses", ego_poses)):
+        for name, hints in (("sizes", sizes), ("classes", classes), ("ego_poses", ego_poses),
+                            ("timestamps", timestamps)):
             if hints is not None and len(hints) != len(track_ids):
                 raise ConfigError(f"{len(track_ids)} track ids but {len(hints)} {name}")
         if len(set(track_ids)) != len(track_ids):
@@ -271,18 +305,22 @@ class Estimator:
         if not track_ids:
             return []
         states = [self._state(t) for t in track_ids]
-        points, lengths, frames = self._prepare(states, point_lists)
+        points, lengths, frames, counts = self._prepare(states, point_lists)
         scale = self._scales(states, frames, sizes, classes)
+        motion = {}
+        if self.model.motion:
+            motion = {"counts": counts, **self._motion(states, timestamps)}
         with torch.inference_mode():
             out = self.model(points, lengths, torch.stack([s.hidden for s in states]),
                              torch.stack([s.mean for s in states]),
-                             torch.tensor([s.seen for s in states]), scale=scale)
+                             torch.tensor([s.seen for s in states]), scale=scale, **motion)
         complete = out["complete"][:, 0].numpy()
         pose = out["pose"][:, 0].double().numpy()
         result = []
         for i, (tid, st) in enumerate(zip(track_ids, states, strict=True)):
             st.hidden, st.mean = out["hidden"][i].clone(), out["mean"][i].clone()
             st.seen = bool(out["seen"][i, 0])
+            st.gap = float(out["gap"][i])
             result.append(Estimate(tid, complete[i].copy(), pose[i].copy(), int(lengths[i, 0])))
             if scale is not None:
                 result[-1].scale = float(scale[i, 0])
@@ -310,6 +348,17 @@ def _class_floor(classes: Sequence | None, i: int) -> float:
     except KeyError:
         raise ConfigError(f"classes[{i}]: unknown vehicle class {classes[i]!r}; expected one "
                           f"of {sorted(CLASS_MIN_LENGTH)} or None") from None
+
+
+def _timestamp(timestamps: Sequence | None, i: int) -> float | None:
+    if timestamps is None or timestamps[i] is None:
+        return None
+    try:
+        ts = float(timestamps[i])
+    except (TypeError, ValueError):
+        raise ConfigError(f"timestamps[{i}] must be a number of seconds or None, got "
+                          f"{timestamps[i]!r}") from None
+    return ts if np.isfinite(ts) else None  # NaN: unknown, as in the training windows
 
 
 def _ego_pose(ego_poses: Sequence | None, i: int) -> np.ndarray | None:

@@ -10,7 +10,9 @@ uninterrupted one would.
 ``model.pt``, a training checkpoint (only its weights), or ``"pretrained"`` (the shipped
 ``seqshape/pretrained/<kind>.pt``), checking that kind and model configuration match the run
 (except the parameter-free fields :data:`~seqshape.model.config.PARAMETER_FREE_FIELDS`: the
-input scale can be switched on when fine-tuning from weights trained without it).
+input scale can be switched on when fine-tuning from weights trained without it; and the
+zero-initialised extensions ``frame_skip`` and ``motion_input`` can be switched on: the new
+parameters start at zero, so the run starts from exactly the source's function).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from seqshape.errors import ConfigError, DataError
 from seqshape.model import estimator
 from seqshape.model.config import PARAMETER_FREE_FIELDS, ModelConfig
 from seqshape.model.estimator import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_model_file
-from seqshape.model.network import ShapePoseNet
+from seqshape.model.network import ShapePoseNet, add_motion_columns
 
 PRETRAINED = "pretrained"
 
@@ -119,14 +121,19 @@ def load_init(spec: str | Path, kind: str, model_cfg: ModelConfig
     diff = [k for k in run_cfg
             if src_cfg.get(k) != run_cfg[k] and k not in PARAMETER_FREE_FIELDS]
     state_dict = payload["state_dict"]
-    if diff == ["frame_skip"] and run_cfg["frame_skip"] and kind == "sequential":
+    if "frame_skip" in diff and run_cfg["frame_skip"] and kind == "sequential":
         # adding the zero-initialised frame skip keeps the function: start from the weights
         # and a zero projection
         h, f = int(run_cfg["hidden"]), int(run_cfg["encoder2"][-1])
         state_dict = dict(state_dict)
         state_dict.setdefault("skip.weight", torch.zeros(h, f))
         state_dict.setdefault("skip.bias", torch.zeros(h))
-        diff = []
+        diff.remove("frame_skip")
+    if "motion_input" in diff and model_cfg.motion_input:
+        # zero GRU columns for the motion inputs keep the function (the baseline has none)
+        if kind == "sequential":
+            state_dict = add_motion_columns(state_dict, model_cfg)
+        diff.remove("motion_input")
     if diff:
         what = ", ".join(f"{k} {src_cfg.get(k)!r} (run: {run_cfg[k]!r})" for k in diff)
         fix = " ".join(f"--model-set {k}={json.dumps(src_cfg.get(k))}" for k in diff)

@@ -12,7 +12,9 @@ Outputs in the run folder ``RUN``::
 Losses are averaged over the window frames that have a known pose and follow the track's
 first points (earlier frames have no estimate). The GT complete shape is placed in each
 frame with its GT pose; losses are in metres and square metres (with ``scale_norm="length"``
-the network rescales its input and output internally; the losses see metres).
+the network rescales its input and output internally; the losses see metres). A
+``motion_input`` model gets each window's time steps (from the track's timestamps) and raw
+point counts; every window starts as a fresh track (no previous detection).
 
 Data parallelism (``torchrun --nproc_per_node R``, gloo on CPU): every process builds the
 same model from the seed, takes its disjoint shard of each global batch
@@ -182,10 +184,15 @@ class Trainer:
 
     def _length_options(self) -> dict[str, Any]:
         """WindowDataset options: per-frame lengths for the input scale when the model uses
-        one (``scale_norm="length"``), none otherwise (the windows are then unchanged)."""
+        one (``scale_norm="length"``), the time steps and raw point counts when it reads
+        motion inputs (``motion_input``, sequential model); none otherwise (the windows are
+        then unchanged)."""
+        opts: dict[str, Any] = {}
+        if self.model.motion:
+            opts["motion"] = True
         if self.model.cfg.scale_norm == "none":
-            return {}
-        return {"length_hint_noise": self.cfg.length_hint_noise,
+            return opts
+        return {**opts, "length_hint_noise": self.cfg.length_hint_noise,
                 "length_points_prob": self.cfg.length_points_prob,
                 "length_running": self.model.recurrent}
 
@@ -203,13 +210,14 @@ class Trainer:
         and run without gradient); None or 2 computes both.
         """
         pts, lengths, scale = batch["points"], batch["lengths"], self._scale(batch)
+        motion = {"dts": batch.get("dts"), "counts": batch.get("counts")}
         if stage == 1:
             with torch.no_grad():
-                enc = self.model.encode(pts, lengths, scale=scale)
+                enc = self.model.encode(pts, lengths, scale=scale, **motion)
             out = {"pose": self.model.decode_pose(enc["h"], enc["means"], enc["scales"]),
                    "seen": enc["seen"]}
         else:
-            out = self.model(pts, lengths, shape=True, pose=stage != 0, scale=scale)
+            out = self.model(pts, lengths, shape=True, pose=stage != 0, scale=scale, **motion)
         sel = batch["valid"] & out["seen"]
         frame_track = sel.nonzero()[:, 0]
         gt_pose = batch["poses"][sel]
