@@ -78,11 +78,11 @@ class RealConfig:
     """Mounting height of the LiDAR above the ground (m), uniform."""
     tilt_deg: float = 1.5
     """Pitch and roll of the LiDAR head, each uniform in +-tilt_deg."""
-    glass_pass: float = 0.6
+    glass_pass: float = 0.85
     """Probability that a ray hitting glass goes through it."""
-    glass_return: float = 0.15
+    glass_return: float = 0.05
     """Probability that a ray hitting glass returns from the pane (else it is lost)."""
-    reflectivity: tuple[float, ...] = (0.5, 0.1, 0.03, 0.3, 0.05, 0.9, 0.1, 0.2)
+    reflectivity: tuple[float, ...] = (0.5, 0.1, 0.03, 0.3, 0.05, 0.9, 0.25, 0.2)
     """Reflectivity per face label (body, glass, tyre, rim, trim, lamp, interior, cargo); the
     body's is replaced by the vehicle's paint."""
     dark_paint_share: float = 0.35

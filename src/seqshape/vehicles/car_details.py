@@ -115,10 +115,10 @@ def _interior(p: CarParams, k: dict, info, x) -> list[Part]:
         if s > k["end"] - 0.3:
             break
         zb, zt, hw, zf = at(s)
-        top = zb + 0.55 * (zt - zb)
+        top = zb + 0.8 * (zt - zb)  # headrests reach well into the side windows
         bottom = zf + 0.2
         out.append(superellipsoid([L - s, 0.0, 0.5 * (top + bottom)],
-                                  [0.14, hw - p.wheel_width - 0.17, 0.5 * (top - bottom)],
+                                  [0.14, hw - 0.15, 0.5 * (top - bottom)],
                                   INTERIOR, power=4.0,
                                   n_lat=4, n_lon=10))
     return out
