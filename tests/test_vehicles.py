@@ -400,7 +400,11 @@ def test_fleet_library_mix_quotas_and_determinism():
     assert [v.vehicle_id for v in a] == [v.vehicle_id for v in b]
     for va, vb in zip(a, b, strict=True):
         np.testing.assert_array_equal(va.mesh.vertices, vb.mesh.vertices)
-    assert a[4].vehicle_id == f"fleet-0004-{a[4].kind}"
+    assert a[4].vehicle_id == f"fleet-s3-0004-{a[4].kind}"
+    # seed 0 keeps the plain ids; other seeds name theirs apart, so libraries can be joined
+    zero = fleet_library(12, seed=0)
+    assert zero[4].vehicle_id == f"fleet-0004-{zero[4].kind}"
+    assert not {v.vehicle_id for v in zero} & {v.vehicle_id for v in a}
     quotas = kind_quotas(12)
     for kind, count in quotas.items():
         assert sum(v.kind == kind for v in a) == count

@@ -171,7 +171,9 @@ def fleet_library(n: int, seed: int = 0, mix: Mapping[str, float] | str | None =
     ``mix`` is the name of a preset (`MIXES`: ``"default"``, ``"us"``, ``"eu"``) or maps kinds
     and/or classes to weights (a class spreads over its kinds by `KIND_MIX`), e.g.
     ``{"car": 0.6, "truck": 0.2, "bus": 0.2}``. The kinds are shuffled with
-    ``seed``; ids are ``fleet-<index:04d>-<kind>``; each ``source`` rebuilds its vehicle.
+    ``seed``; ids are ``fleet-<index:04d>-<kind>`` for seed 0 and ``fleet-s<seed>-<index:04d>-<kind>``
+    otherwise, so libraries of different seeds can be trained on together; each ``source``
+    rebuilds its vehicle.
     """
     if n < 0:
         raise ConfigError(f"n must be >= 0, got {n}")
@@ -180,10 +182,11 @@ def fleet_library(n: int, seed: int = 0, mix: Mapping[str, float] | str | None =
     rng = np.random.default_rng([int(seed), 0xF1EE7])
     kinds = [kinds[i] for i in rng.permutation(len(kinds))]
     seeds = np.random.SeedSequence([int(seed), 0xF1EE]).generate_state(max(n, 1), np.uint32)
+    prefix = "" if int(seed) == 0 else f"s{int(seed)}-"
     out = []
     for i, kind in enumerate(kinds):
         v = fleet_vehicle(kind, int(seeds[i]))
-        v.vehicle_id = f"fleet-{i:04d}-{kind}"
+        v.vehicle_id = f"fleet-{prefix}{i:04d}-{kind}"
         out.append(v)
     return out
 
