@@ -192,3 +192,40 @@ def cd_floor(complete, n_pred: int, seed: int = 0,
     cd_split = chamfer_distance(complete[perm[:half]], complete[perm[half:2 * half]])
     scale = (1.0 / np.sqrt(m) + 1.0 / np.sqrt(n_pred)) / (2.0 / np.sqrt(half))
     return float(cd_split * scale), "split"
+
+
+# --------------------------------------------------------------------------------------------
+# 180-degree flips per track
+
+def flip_stats(rot_rad, track_ids, flip_deg: float) -> dict[str, float | int | None]:
+    """How often and on how many tracks the heading is reversed.
+
+    A frame is flipped when its rotation error (``rot_rad (N,)``, radians, NaN where the pose
+    is unknown) exceeds ``flip_deg`` degrees; ``track_ids (N,)`` names each frame's track.
+    Frames with an unknown pose are left out, and so are tracks without a known frame.
+    Returns ``n_frames`` and ``n_tracks`` (known), ``flipped_frames``, ``flipped_tracks`` (with
+    at least one flipped frame), ``flip_pct`` (% of frames), ``tracks_with_flip_pct`` (% of
+    tracks) and ``track_flip_median_pct`` (the median over tracks of each track's share of
+    flipped frames, %); the percentages are None without a known frame.
+
+    >>> s = flip_stats(np.radians([3.0, 179.0, 5.0, 2.0]), np.array(list("aabb")), 150.0)
+    >>> s["flip_pct"], s["tracks_with_flip_pct"], s["track_flip_median_pct"]
+    (25.0, 50.0, 25.0)
+    """
+    rot = np.degrees(np.asarray(rot_rad, dtype=np.float64))
+    tracks = np.asarray(track_ids)
+    if rot.shape != tracks.shape or rot.ndim != 1:
+        raise ValueError(f"rot_rad and track_ids must be equal-length 1-D arrays, got "
+                         f"{rot.shape} and {tracks.shape}")
+    known = np.isfinite(rot)
+    rot, tracks = rot[known], tracks[known]
+    flip = rot > flip_deg
+    names, which = np.unique(tracks, return_inverse=True)
+    per_track = (np.bincount(which, weights=flip, minlength=len(names))
+                 / np.maximum(np.bincount(which, minlength=len(names)), 1))  # (n_tracks,)
+    some = len(rot) > 0
+    return {"n_frames": int(len(rot)), "n_tracks": int(len(names)),
+            "flipped_frames": int(flip.sum()), "flipped_tracks": int((per_track > 0).sum()),
+            "flip_pct": float(100.0 * flip.mean()) if some else None,
+            "tracks_with_flip_pct": float(100.0 * (per_track > 0).mean()) if some else None,
+            "track_flip_median_pct": float(100.0 * np.median(per_track)) if some else None}

@@ -20,6 +20,16 @@ with a known pose), the rotation error modulo 180 degrees (``rot_axis_deg``), th
 and absolute tangential translation errors and the signed and absolute length/width errors
 (cm), each as a mean and a median.
 
+Per track and per detection count (issue 19), ``details[method]`` also holds ``"flips"``
+(:func:`seqshape.evaluation.metrics.flip_stats` at :data:`FLIP_DEG`: % of frames flipped, share
+of tracks with any flip, median over tracks of each track's flipped share), ``"by_detections"``
+(``{"all" | "moving" | "parked": {"1" | "2-4" | "5-8" | "9-16" | "17+": {n_frames, n_tracks,
+cd_cm, trans_cm, rot_deg, flip_pct}}}``, frame-pooled means; parked: the true distance from the
+sensor spans less than :data:`PARKED_SPREAD_M`) and ``"late_over_first"`` (``{group: {"cd",
+"trans"}}``: the error at 17+ detections over the error at the first detection, over the tracks
+that have both, each track weighing the same: :func:`late_over_first`). ``metrics.md`` prints
+the flips per track under the table and a table of errors by detections so far.
+
 Real data (``settings["real"]``: a track's meta says ``source: "real"``): ``metrics.json`` gains
 ``"breakdown"``: ``{"all" | "class_group" | "class" | "distance" | "points": {group: {method:
 stats}}}`` with :data:`BREAKDOWN_STATS` (medians and means, cm / deg / %) per group: all frames,
@@ -40,6 +50,7 @@ import numpy as np
 
 from seqshape._io import atomic_open, atomic_write_json, atomic_write_text
 from seqshape.errors import SeqshapeError
+from seqshape.evaluation.metrics import flip_stats
 from seqshape.evaluation.runner import FIELDS, EvalResult
 
 #: The paper's Table I (synthetic data): CD cm, EMD m, translation cm, rotation deg.
@@ -83,6 +94,14 @@ LARGER = ("van", "truck", "bus", "trailer")
 #: Distance bins (m, lower edges; the last is open) and points-per-frame bins (lower edges).
 DISTANCE_BINS = (0.0, 10.0, 20.0, 30.0, 50.0)
 POINT_BINS = (0, 1, 10, 30, 100, 300, 1000)
+#: Detections-so-far groups (lower edges, the last open): 1, 2-4, 5-8, 9-16, 17+.
+DETECTION_BINS = (1, 2, 5, 9, 17)
+#: A track whose true distance from the sensor spans less than this (m) over its scored frames
+#: is "parked": the sensor sees one repeated view (a static vehicle and a static sensor).
+PARKED_SPREAD_M = 0.01
+#: Errors followed by detections so far: report key -> (record column, scale).
+DETECTION_METRICS = {"cd_cm": ("cd_m", 100.0), "trans_cm": ("trans_m", 100.0),
+                     "rot_deg": ("rot_rad", 180.0 / math.pi)}
 
 
 def _mean(x: np.ndarray) -> float | None:
@@ -123,7 +142,86 @@ def method_summary(rec: dict[str, np.ndarray]) -> tuple[dict[str, float | None],
             v = rec[col] * scale
             v = np.abs(v) if absolute else v
             details[key], details[f"{key}_median"] = _mean(v), _median(v)
+    details["flips"] = flip_stats(rec["rot_rad"], tracks, FLIP_DEG)
+    if "n_det" in rec and "distance_m" in rec:
+        details["by_detections"], details["late_over_first"] = detection_summary(rec)
     return table, details
+
+
+def motion_groups(rec: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Frame masks ``{"all", "moving", "parked"}`` over one method's records (empty groups
+    left out). Parked: the track's true distance from the sensor spans less than
+    :data:`PARKED_SPREAD_M` (one repeated view); moving: every other track. With a moving
+    ego (real logs) nearly every track counts as moving: its view changes."""
+    tracks, dist = rec["track_id"], rec["distance_m"]
+    names, which = np.unique(tracks, return_inverse=True)
+    lo = np.full(len(names), np.inf)
+    hi = np.full(len(names), -np.inf)
+    ok = np.isfinite(dist)
+    np.minimum.at(lo, which[ok], dist[ok])
+    np.maximum.at(hi, which[ok], dist[ok])
+    parked = (hi - lo < PARKED_SPREAD_M)[which]  # (N,) per frame
+    groups = {"all": np.ones(len(tracks), bool), "moving": ~parked, "parked": parked}
+    return {g: m for g, m in groups.items() if m.any()}
+
+
+def detection_summary(rec: dict[str, np.ndarray]) -> tuple[dict, dict]:
+    """Errors by detections so far, per motion group (:func:`motion_groups`).
+
+    Returns ``(by_detections, late_over_first)``: ``{group: {bin: stats}}`` over the bins of
+    :data:`DETECTION_BINS` (labels "1", "2-4", ..., "17+"), stats = ``n_frames``,
+    ``n_tracks``, frame-pooled means of :data:`DETECTION_METRICS` and ``flip_pct``; and
+    ``{group: {"cd": r, "trans": r}}``, the error at 17+ detections over the error at the
+    first detection on the same tracks (:func:`late_over_first`). The bins pool their frames
+    (the 17+ bin holds only the tracks that reach 17 detections, each weighted by its frames
+    there); the ratios do not.
+    """
+    labels = DETECTION_LABELS
+    which = np.digitize(rec["n_det"], DETECTION_BINS) - 1  # -1: before any detection
+    by_det: dict[str, dict[str, dict[str, Any]]] = {}
+    ratios: dict[str, dict[str, float | None]] = {}
+    for group, in_group in motion_groups(rec).items():
+        by_det[group] = {}
+        for i, label in enumerate(labels):
+            sel = in_group & (which == i)
+            if not sel.any():
+                continue
+            st: dict[str, Any] = {"n_frames": int(sel.sum()),
+                                  "n_tracks": int(len(np.unique(rec["track_id"][sel])))}
+            for key, (col, scale) in DETECTION_METRICS.items():
+                st[key] = _mean(rec[col][sel] * scale)
+            st["flip_pct"] = flip_stats(rec["rot_rad"][sel], rec["track_id"][sel],
+                                        FLIP_DEG)["flip_pct"]
+            by_det[group][label] = st
+        ratios[group] = {name: late_over_first(rec, in_group, which == 0,
+                                               which == len(labels) - 1, col)
+                         for name, col in (("cd", "cd_m"), ("trans", "trans_m"))}
+    return by_det, ratios
+
+
+def late_over_first(rec: dict[str, np.ndarray], in_group: np.ndarray, first: np.ndarray,
+                    late: np.ndarray, col: str) -> float | None:
+    """The late error over the first, on the same tracks with the same weight each.
+
+    Over the tracks of ``in_group`` with a finite ``col`` in both the ``first`` and the
+    ``late`` frames: the mean over tracks of each track's mean error over its late frames,
+    divided by the mean over the same tracks of their mean error over their first frames.
+    Matching the tracks keeps the ratio free of who reaches the late bin and of how long they
+    stay there (a per-frame estimator on a repeated view scores about 1). None without such
+    a track or when the first errors are all 0.
+    """
+    v = rec[col]
+    means = []
+    for sel in (first, late):
+        ok = in_group & sel & np.isfinite(v)
+        names, which = np.unique(rec["track_id"][ok], return_inverse=True)
+        means.append(dict(zip(names.tolist(), np.bincount(which, weights=v[ok])
+                              / np.bincount(which), strict=True)))
+    common = sorted(set(means[0]) & set(means[1]))
+    if not common:
+        return None
+    a = np.mean([means[0][t] for t in common])
+    return float(np.mean([means[1][t] for t in common]) / a) if a > 0 else None
 
 
 def group_stats(rec: dict[str, np.ndarray], sel: np.ndarray) -> dict[str, Any]:
@@ -154,6 +252,10 @@ def _bin_labels(edges: tuple, unit: str, integer: bool) -> list[str]:
         else:
             labels.append(f"{lo:g}+ {unit}" if hi is None else f"{lo:g}-{hi:g} {unit}")
     return labels
+
+
+#: Labels of :data:`DETECTION_BINS`: "1", "2-4", "5-8", "9-16", "17+".
+DETECTION_LABELS = tuple(_bin_labels(DETECTION_BINS, "", True))
 
 
 def frame_groups(rec: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
@@ -267,6 +369,11 @@ def metrics_markdown(summary: dict[str, Any]) -> str:
                      + "; ".join(flips) + ". A flip costs a nearly symmetric car little CD but "
                      "a large rotation error; over few tracks one flipped track can dominate "
                      "the mean.")
+    track_flips = [_track_flip_text(m, summary["details"][m]["flips"]) for m in methods
+                   if "flips" in summary.get("details", {}).get(m, {})]
+    if track_flips:
+        lines.append("- Flips per track: " + "; ".join(track_flips) + ".")
+    lines += detections_markdown(summary.get("details", {}), methods)
     if real:
         lines += _real_notes(s, methods)
         for stat in ("median", "mean"):
@@ -328,6 +435,45 @@ def _flip_text(method: str, d: dict[str, Any]) -> str:
     return (f"{method} {d['rot_flip_frames']} of {d.get('n_rot_rad', '?')} frames in {n} "
             f"track{'' if n == 1 else 's'}, rotation without them "
             f"{_fmt(d.get('rot_deg_without_flips'), 'rot_deg')} deg")
+
+
+def _track_flip_text(method: str, f: dict[str, Any]) -> str:
+    pct = {k: "n/a" if f.get(k) is None else f"{f[k]:.1f} %"
+           for k in ("flip_pct", "tracks_with_flip_pct", "track_flip_median_pct")}
+    return (f"{method} {pct['flip_pct']} of frames, {f['flipped_tracks']} of {f['n_tracks']} "
+            f"tracks ({pct['tracks_with_flip_pct']}) with a flip, median track "
+            f"{pct['track_flip_median_pct']} of its frames")
+
+
+def detections_markdown(details: dict[str, dict[str, Any]], methods: list[str]) -> list[str]:
+    """The "errors by detections so far" table (frame-pooled means; moving and parked tracks
+    apart when both occur) and the 17+ over first-detection ratios, as markdown lines."""
+    rows = [(m, g, per) for m in methods
+            for g, per in details.get(m, {}).get("by_detections", {}).items()]
+    if not rows:
+        return []
+    labels = DETECTION_LABELS
+    cols = [f"{what} {lab}" for what in ("CD", "transl.") for lab in labels]
+    lines = ["", "### Errors by detections so far (frame-pooled means, cm)", "",
+             "| tracks | method | frames at 1 / 17+ | " + " | ".join(cols)
+             + " | CD 17+/1 | transl. 17+/1 |", "|" + "---|" * (len(cols) + 5)]
+    for g in ("all", "moving", "parked"):
+        for m, group, per in rows:
+            if group != g:
+                continue
+            n = [str(per.get(lab, {}).get("n_frames", 0)) for lab in (labels[0], labels[-1])]
+            cells = [_fmt(per.get(lab, {}).get(key), key)
+                     for key in ("cd_cm", "trans_cm") for lab in labels]
+            r = details[m]["late_over_first"].get(g, {})
+            cells += ["n/a" if r.get(k) is None else f"{r[k]:.2f}" for k in ("cd", "trans")]
+            lines.append(f"| {g} | {m} | {' / '.join(n)} | " + " | ".join(cells) + " |")
+    lines += ["", f"Parked: the true distance from the sensor spans less than "
+                  f"{100 * PARKED_SPREAD_M:g} cm over the track (one repeated view). The bins "
+                  f"pool their frames (17+ holds only the tracks that reach 17 detections); "
+                  f"the ratios compare each track reaching 17+ with its own first detection "
+                  f"(mean over those tracks): below 1, the error falls as detections "
+                  f"accumulate."]
+    return lines
 
 
 def write_per_frame_csv(path: str | Path, result: EvalResult) -> None:

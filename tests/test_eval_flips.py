@@ -1,0 +1,161 @@
+"""Flips per track and errors by detections so far in the evaluation report (issue 19)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from seqshape.data import Track
+from seqshape.evaluation import evaluate_tracks, metrics_markdown, summarize
+from seqshape.evaluation.metrics import flip_stats
+from seqshape.evaluation.report import DETECTION_LABELS, FLIP_DEG, detection_summary
+from seqshape.geometry import canonical_to_sensor
+
+
+def _box_surface(n: int = 400, size=(4.0, 1.8, 1.5), seed: int = 0) -> np.ndarray:
+    """Points on the faces of a box centred at the origin (canonical frame)."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-0.5, 0.5, (n, 3))
+    axis = rng.integers(0, 3, n)
+    p[np.arange(n), axis] = np.sign(p[np.arange(n), axis]) * 0.5
+    return (p * np.asarray(size)).astype(np.float32)
+
+
+def _track(track_id: str, n_frames: int = 10) -> Track:
+    """A car driving along x, 1 m per frame, 12 m ahead of the sensor and 3 m to the left."""
+    t = np.arange(n_frames, dtype=np.float64)
+    poses = np.stack([12.0 + t, np.full_like(t, 3.0), np.full_like(t, -1.2),
+                      np.full_like(t, 0.3)], axis=1)
+    complete = _box_surface()
+    points = [canonical_to_sensor(complete[:50], p) for p in poses]
+    return Track(track_id, points, poses, complete, np.array([4.0, 1.8, 1.5]), t * 0.1,
+                 {"split": "val"})
+
+
+@dataclass
+class _Est:
+    complete: np.ndarray
+    pose: np.ndarray
+
+
+class _Reverser:
+    """Returns the true pose and shape, with the yaw turned by pi on chosen frames."""
+
+    recurrent = False
+
+    def __init__(self, tracks: list[Track], flipped: dict[str, set[int]]):
+        self.tracks = {tr.track_id: tr for tr in tracks}
+        self.flipped = flipped
+        self.frame: dict[str, int] = {}
+
+    def step(self, track_ids, point_lists):
+        out = []
+        for tid in track_ids:
+            t = self.frame.get(tid, 0)
+            self.frame[tid] = t + 1
+            tr = self.tracks[tid]
+            pose = tr.poses[t].copy()
+            if t in self.flipped.get(tid, set()):
+                pose[3] += np.pi
+            out.append(_Est(tr.complete_in_frame(t), pose))
+        return out
+
+    def reset(self, track_id=None):
+        self.frame.pop(track_id, None)
+
+
+def _summary(tracks, flipped):
+    res = evaluate_tracks({"sequential": _Reverser(tracks, flipped)}, tracks, emd_every=0,
+                          workers=0, floor="split", hints=False)
+    return summarize(res)
+
+
+def test_reversed_in_3_of_10_frames_is_30_percent_and_one_track():
+    s = _summary([_track("a")], {"a": {2, 5, 7}})
+    f = s["details"]["sequential"]["flips"]
+    assert f["n_frames"] == 10 and f["flipped_frames"] == 3
+    assert f["flip_pct"] == pytest.approx(30.0)
+    assert (f["flipped_tracks"], f["n_tracks"]) == (1, 1)
+    assert f["tracks_with_flip_pct"] == pytest.approx(100.0)
+    assert f["track_flip_median_pct"] == pytest.approx(30.0)
+    md = metrics_markdown(s)
+    assert "sequential 30.0 % of frames, 1 of 1 tracks (100.0 %) with a flip" in md
+
+
+def test_clean_track_has_no_flip_and_median_over_tracks():
+    s = _summary([_track("a")], {})
+    f = s["details"]["sequential"]["flips"]
+    assert f["flipped_frames"] == 0 and f["flipped_tracks"] == 0
+    assert f["flip_pct"] == 0.0 and f["tracks_with_flip_pct"] == 0.0
+    assert f["track_flip_median_pct"] == 0.0
+    # three tracks flipped in 0, 1 and 4 of 10 frames: median track share 10 %
+    s = _summary([_track("a"), _track("b"), _track("c")], {"b": {0}, "c": {1, 2, 3, 9}})
+    f = s["details"]["sequential"]["flips"]
+    assert f["flip_pct"] == pytest.approx(100 * 5 / 30)
+    assert (f["flipped_tracks"], f["n_tracks"]) == (2, 3)
+    assert f["track_flip_median_pct"] == pytest.approx(10.0)
+
+
+def test_flip_stats_threshold_and_unknown_poses():
+    rot = np.radians([FLIP_DEG + 1.0, FLIP_DEG - 1.0, np.nan, np.nan])
+    s = flip_stats(rot, np.array(["a", "a", "a", "b"]), FLIP_DEG)
+    assert (s["n_frames"], s["n_tracks"], s["flipped_frames"]) == (2, 1, 1)  # b: no known pose
+    assert s["flip_pct"] == 50.0
+    with pytest.raises(ValueError, match="equal-length"):
+        flip_stats(rot, np.array(["a"]), FLIP_DEG)
+
+
+def _records(tracks: dict[str, tuple[list[float], list[float], list[float]]]):
+    """Records of one method from ``{track: (n_det, distance_m, cd_m)}``; the translation
+    error is half the CD and the rotation 0.1 rad."""
+    tid, n_det, dist, cd = [], [], [], []
+    for name, (n, d, c) in tracks.items():
+        tid += [name] * len(n)
+        n_det += n
+        dist += d
+        cd += c
+    cd = np.array(cd)
+    return {"track_id": np.array(tid), "n_det": np.array(n_det), "distance_m": np.array(dist),
+            "cd_m": cd, "trans_m": cd / 2, "rot_rad": np.full(len(cd), 0.1)}
+
+
+def test_errors_by_detections_moving_and_parked():
+    n = list(range(1, 21))  # detections 1..20: bins 1, 2-4, 5-8, 9-16, 17+ hold 1, 3, 4, 8, 4
+    moving = (n, [10.0 + 0.5 * k for k in n], [0.4] + [0.3] * 15 + [0.2] * 4)
+    parked = (n, [20.0] * 20, [0.3] * 20)
+    by_det, ratio = detection_summary(_records({"m": moving, "p": parked}))
+    assert list(by_det) == ["all", "moving", "parked"]
+    assert list(by_det["moving"]) == list(DETECTION_LABELS)
+    assert [by_det["moving"][lab]["n_frames"] for lab in DETECTION_LABELS] == [1, 3, 4, 8, 4]
+    assert by_det["moving"]["1"]["cd_cm"] == pytest.approx(40.0)
+    assert by_det["moving"]["17+"]["trans_cm"] == pytest.approx(10.0)
+    assert by_det["all"]["17+"]["cd_cm"] == pytest.approx(25.0)  # 4 frames at 20, 4 at 30
+    assert ratio["moving"]["cd"] == pytest.approx(0.5)
+    assert ratio["moving"]["trans"] == pytest.approx(0.5)
+    assert ratio["parked"]["cd"] == pytest.approx(1.0)
+    assert ratio["all"]["cd"] == pytest.approx(25.0 / 35.0)
+    # the ratio compares each track with itself: two parked tracks with constant errors
+    # 0.2 m (20 frames) and 0.4 m (40 frames) pool to 36.7 cm at 17+ against 30 cm at 1
+    by_det, ratio = detection_summary(_records({
+        "p1": (n, [20.0] * 20, [0.2] * 20),
+        "p2": (list(range(1, 41)), [9.0] * 40, [0.4] * 40)}))
+    assert by_det["parked"]["17+"]["cd_cm"] == pytest.approx((4 * 20 + 24 * 40) / 28)
+    assert ratio["parked"]["cd"] == pytest.approx(1.0)
+    # a short track never reaches 17 detections: no ratio
+    _, ratio = detection_summary(_records({"s": ([1, 2, 3], [5.0, 6.0, 7.0], [0.3] * 3)}))
+    assert ratio == {"all": {"cd": None, "trans": None}, "moving": {"cd": None, "trans": None}}
+
+
+def test_markdown_table_by_detections():
+    s = _summary([_track("a", 20)], {"a": {0}})
+    d = s["details"]["sequential"]
+    assert d["by_detections"]["moving"]["1"]["flip_pct"] == 100.0
+    assert d["by_detections"]["moving"]["17+"]["flip_pct"] == 0.0
+    assert d["late_over_first"]["moving"]["trans"] is None  # no error at the first: no ratio
+    md = metrics_markdown(s)
+    assert "### Errors by detections so far" in md
+    row = next(line for line in md.splitlines() if line.startswith("| moving | sequential |"))
+    cells = [c.strip() for c in row.split("|")]
+    assert cells[3] == "1 / 4" and cells[-3:-1] == ["n/a", "n/a"]
