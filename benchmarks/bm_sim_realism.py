@@ -1,0 +1,118 @@
+"""Does a synthetic preset put the points where a real LiDAR does? Point layout, real vs synthetic.
+
+Compares the per-frame point layout of vehicle crops in two or more track folders (a real one made
+by ``seqshape tracks``, synthetic ones made by ``seqshape generate``), in each frame's ground-truth
+box normalised by its size, for cars with ``--min-points`` to ``--max-points`` points per frame:
+
+* ``far half %``: share of a frame's points beyond the box centre as seen from the sensor (the
+  far half of the car, reached over the roof or through the glass);
+* ``top %``: share above 0.7 of the box height; ``low %``: below 0.3;
+* ``mean offset``: distance (m) from the points' mean to the box centre toward the sensor, the
+  offset a network that demeans its input has to learn (a different offset on real data is a
+  radial bias);
+* ``face gap``: for frames with a face seen head-on (|view component| >= 0.5 along the box
+  axis), the distance (m) from that face to the 98th percentile of the points along the axis;
+* a table of the points' share by height band and radial band (near face ... far face).
+
+    python benchmarks/bm_sim_realism.py REAL_TRACKS SYNTHETIC_DATASET [MORE ...] --labels av2 real
+
+Each folder is any ``TrackDataset`` folder; a folder with a ``val`` split is read whole (the
+layout does not depend on the split). Nothing is timed.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from _bench import print_table
+
+from seqshape.data.dataset import TrackDataset
+from seqshape.geometry import sensor_to_canonical
+
+Z_BANDS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2)
+R_BANDS = (-1.3, -0.75, -0.25, 0.25, 0.75, 1.3)
+
+
+def frame_layout(points: np.ndarray, pose: np.ndarray, size: np.ndarray) -> dict:
+    """The layout numbers of one frame (module doc); points (N, 3) in the sensor frame."""
+    c = pose[:2]
+    dist = float(np.linalg.norm(c))
+    q = sensor_to_canonical(points, pose).astype(np.float64)
+    half = np.asarray(size[:2], np.float64) / 2
+    yaw = pose[3]
+    to_box = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+    view = to_box @ (-c / dist)  # unit direction box -> sensor, box axes
+    # radial coordinate: -1 at the face nearest the sensor, +1 at the far one
+    reach = abs(view[0]) * half[0] + abs(view[1]) * half[1]
+    radial = -(q[:, :2] @ view) / reach
+    z = (q[:, 2] + size[2] / 2) / size[2]
+    gaps = []
+    for a in (0, 1):
+        if abs(view[a]) >= 0.5:
+            proj = q[:, a] * np.sign(view[a])
+            gaps.append(half[a] - np.quantile(proj, 0.98))
+    return {"far": float(np.mean(radial > 0)), "top": float(np.mean(z > 0.7)),
+            "low": float(np.mean(z < 0.3)),
+            "offset": float(q[:, :2].mean(0) @ view),
+            "gaps": gaps, "radial": radial, "z": z, "range": dist}
+
+
+def layout(folder: Path, min_points: int, max_points: int, max_tracks: int) -> dict:
+    ds = TrackDataset(folder)
+    rows, gaps, radial, z = [], [], [], []
+    for i in range(min(len(ds), max_tracks)):
+        tr = ds[i]
+        if tr.meta.get("class", "car") != "car":
+            continue
+        for t, pts in enumerate(tr.points):
+            if not min_points <= len(pts) <= max_points:
+                continue
+            f = frame_layout(pts, tr.poses[t], tr.size)
+            rows.append((f["far"], f["top"], f["low"], f["offset"], f["range"], len(pts)))
+            gaps += f["gaps"]
+            radial.append(f["radial"])
+            z.append(f["z"])
+    if not rows:
+        raise SystemExit(f"{folder}: no car frames with {min_points}-{max_points} points")
+    a = np.array(rows)
+    hist, _, _ = np.histogram2d(np.concatenate(z).clip(0, 1.19), np.concatenate(radial).clip(
+        -1.29, 1.29), bins=[Z_BANDS, R_BANDS])
+    return {"frames": len(a), "far": np.median(a[:, 0]), "top": np.median(a[:, 1]),
+            "low": np.median(a[:, 2]), "offset": np.median(a[:, 3]), "range": np.median(a[:, 4]),
+            "points": np.median(a[:, 5]), "gap": np.median(gaps) if gaps else float("nan"),
+            "hist": 100 * hist / hist.sum()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("folders", nargs="+", type=Path, help="track folders (real first)")
+    ap.add_argument("--labels", nargs="*", help="a short name per folder")
+    ap.add_argument("--min-points", type=int, default=100)
+    ap.add_argument("--max-points", type=int, default=1000)
+    ap.add_argument("--max-tracks", type=int, default=400,
+                    help="read at most this many tracks per folder (default 400)")
+    args = ap.parse_args()
+    labels = args.labels or [f.name for f in args.folders]
+    if len(labels) != len(args.folders):
+        raise SystemExit("--labels needs one name per folder")
+    res = {lab: layout(f, args.min_points, args.max_points, args.max_tracks)
+           for lab, f in zip(labels, args.folders, strict=True)}
+    print(f"\ncar frames with {args.min_points}-{args.max_points} points (medians over frames)\n")
+    print_table(["folder", "frames", "range m", "points", "far half %", "top %", "low %",
+                 "mean offset m", "face gap m"],
+                [[lab, r["frames"], f"{r['range']:.1f}", int(r["points"]), f"{100 * r['far']:.0f}",
+                  f"{100 * r['top']:.0f}", f"{100 * r['low']:.0f}", f"{r['offset']:.2f}",
+                  f"{r['gap']:.2f}"] for lab, r in res.items()])
+    bands = [f"{lo:+.2f}..{hi:+.2f}" for lo, hi in zip(R_BANDS[:-1], R_BANDS[1:], strict=True)]
+    for lab, r in res.items():
+        print(f"\n{lab}: % of points by height (share of box height) and radial position "
+              "(-1 near face, +1 far face)\n")
+        rows = [[f"{Z_BANDS[i]:.1f}-{Z_BANDS[i + 1]:.1f}", *(f"{v:.1f}" for v in r["hist"][i])]
+                for i in range(len(Z_BANDS) - 2, -1, -1)]
+        print_table(["height", *bands], rows)
+
+
+if __name__ == "__main__":
+    main()
