@@ -141,6 +141,65 @@ def test_glass_shares_follow_the_probabilities():
     assert np.mean(np.isinf(r)) == pytest.approx(0.25, abs=0.03)
 
 
+def test_incidence_cosine_and_effective_reflectivity_by_hand():
+    # a unit cube 6 m ahead turned by 30 deg: the horizontal forward ray meets its -x face at
+    # 30 deg from the normal; the backward ray 10 deg down meets the level ground, whose
+    # reflectivity is an effective one at every angle
+    cube = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    pose = np.array([[6.0, 0.0, 0.0, math.radians(30.0)]])
+    n, d = real.ground_plane(2.0, 0.0, 0.0)
+    dirs = real.head_directions(np.array([0.0, math.radians(-10.0)]), np.array([0.0, math.pi]),
+                                np.eye(3))
+    frame = np.zeros(2, np.int64)
+    for expo, expect in ((1.0, [0.5 * math.cos(math.radians(30)), 0.2]),
+                         (2.0, [0.5 * 0.75, 0.2]), (0.0, [0.5, 0.2])):
+        rc = real.RealConfig(incidence_exponent=expo)
+        scene = real.Scene([real.vehicle_object(cube, pose, None, 0.5, rc, 0)], n, d, 0.2)
+        r, rho, src = real.trace(scene, dirs, frame, rc, np.random.default_rng(0))
+        np.testing.assert_allclose(rho, expect, rtol=1e-9)
+        np.testing.assert_allclose(r[1], 2.0 / math.sin(math.radians(10.0)), rtol=1e-9)
+        assert list(src) == [0, real.SOURCES.index("ground")]
+    with pytest.raises(ConfigError, match="incidence_exponent"):
+        real.RealConfig(incidence_exponent=-1.0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 60.0, 75.0])
+def test_glass_passes_less_at_grazing_incidence(angle):
+    # a vertical pane through x = 5 whose normal is turned by ``angle`` from the rays; a body
+    # box behind it. Fresnel (sine / tangent forms, n = 1.52), two faces, unpolarised light
+    a = math.radians(angle)
+    u, w = np.array([-math.sin(a), math.cos(a), 0.0]), np.array([0.0, 0.0, 1.0])
+    corners = [np.array([5.0, 0, 0]) + 3 * (su * u + sw * w)
+               for su, sw in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    pane = trimesh.Trimesh(corners, [[0, 1, 2], [0, 2, 3]], process=False)
+    box = trimesh.creation.box(extents=(1.0, 4.0, 4.0))
+    box.apply_translation([9.5, 0, 0])
+    mesh = trimesh.util.concatenate([pane, box])
+    labels = np.array([GLASS, GLASS] + [BODY] * len(box.faces), np.uint8)
+    dirs = real.head_directions(np.zeros(4000), np.zeros(4000), np.eye(3))
+    rc = real.RealConfig(glass_pass=0.9, glass_return=0.0)
+    r, _, src = real.trace(_scene(mesh, labels, rc), dirs, np.zeros(4000, np.int64), rc,
+                           np.random.default_rng(2))
+
+    def pane_t(t):
+        if t == 0.0:
+            return (1 - ((1.52 - 1) / (1.52 + 1)) ** 2) ** 2
+        tt = math.asin(math.sin(t) / 1.52)
+        rs = (math.sin(t - tt) / math.sin(t + tt)) ** 2
+        rp = (math.tan(t - tt) / math.tan(t + tt)) ** 2
+        return 0.5 * ((1 - rs) ** 2 + (1 - rp) ** 2)
+
+    expect = 0.9 * pane_t(a) / pane_t(0.0)
+    assert np.mean(np.isfinite(r)) == pytest.approx(expect, abs=0.025)
+    np.testing.assert_allclose(r[np.isfinite(r)], 9.0, atol=1e-9)
+    assert real.pane_transmission(1.0) == pytest.approx(pane_t(0.0))
+    assert real.pane_transmission(math.cos(a)) == pytest.approx(pane_t(a))
+    off = real.RealConfig(glass_pass=0.9, glass_return=0.0, glass_fresnel=False)
+    r, _, _ = real.trace(_scene(mesh, labels, off), dirs, np.zeros(4000, np.int64), off,
+                         np.random.default_rng(2))
+    assert np.mean(np.isfinite(r)) == pytest.approx(0.9, abs=0.025)
+
+
 # ----------------------------------------------------------------------------- dropout
 
 

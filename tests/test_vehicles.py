@@ -380,6 +380,26 @@ def test_bus_glass_sits_above_the_floor_and_the_windshield_faces_forward():
                             [-1, 0, 0]) == GLASS
 
 
+@pytest.mark.parametrize("kind,seed", [("sedan", 2), ("suv", 4), ("hatchback", 1)])
+def test_car_cabin_is_open_above_the_seat_backs(kind, seed):
+    # real seats: backs end a few cm above the beltline, headrests sit over the outer seats,
+    # a gap between the front seats; a ray along the car's axis just above the seat backs
+    # crosses the whole cabin, one through a headrest does not, one below the belt does not
+    v = fleet_vehicle(kind, seed)
+    p, t = v.mesh.metadata["params"], v.mesh.metadata["build_to_canonical"]
+    inner = v.mesh.submesh([np.flatnonzero(v.face_labels == INTERIOR)], append=True)
+    isect = trimesh.ray.ray_triangle.RayMeshIntersector(inner)
+
+    def hits(y, z):
+        o = np.array([[p["length"] + 1.0, y, z]]) + t
+        return bool(isect.intersects_any(o, np.array([[-1.0, 0.0, 0.0]]))[0])
+
+    top = p["belt"] + p["belt_rise"]
+    assert not hits(0.0, top + 0.12)
+    assert hits(0.37, p["belt"] + 0.2)       # the driver's headrest
+    assert hits(0.0, p["belt"] - 0.15)       # the rear bench back
+
+
 @pytest.mark.parametrize("kind", ["mpv", "city_bus", "box_truck"])
 def test_interior_is_hidden_from_the_outer_surface(kind):
     v = fleet_vehicle(kind, 1)

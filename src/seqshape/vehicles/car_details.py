@@ -94,8 +94,17 @@ def _spoiler(p: CarParams, k: dict, info, x) -> list[Part]:
 
 
 def _interior(p: CarParams, k: dict, info, x) -> list[Part]:
-    """Dashboard and seat rows inside the cabin (seen only through the glass)."""
-    out = []
+    """Dashboard, seats and the load floor inside the cabin (seen only through the glass).
+
+    Sized like real car seats: front row two separate seats (~0.50 m wide, centred 0.37 m from
+    the centre line, a console gap between them), rear row a bench as wide as the cabin;
+    cushions ~0.36 m above the floor, seat backs ending a few cm above the beltline, one
+    headrest (0.26 x 0.10 x 0.20 m) above each outer seat. Above the beltline a real cabin
+    is mostly empty: rays through the windshield or a side window pass beside and between the
+    headrests on to the rear window, the far panes and the load floor behind the last row
+    (a parcel shelf under the rear window of a notchback / fastback, a cargo floor and a
+    shelf at the belt of a hatchback, a cargo floor of an estate / SUV / MPV).
+    """
     L = p.length
 
     def at(s):
@@ -104,23 +113,82 @@ def _interior(p: CarParams, k: dict, info, x) -> list[Part]:
 
     s_dash = k["cowl"] + 0.2
     zb, zt, hw, zf = at(s_dash)
-    out.append(superellipsoid([L - s_dash, 0.0, zb - 0.12], [0.16, hw - 0.25, 0.14], INTERIOR,
-                              power=4.0, n_lat=4, n_lon=10))
+    out = [superellipsoid([L - s_dash, 0.0, zb - 0.12], [0.16, hw - 0.25, 0.14], INTERIOR,
+                          power=4.0, n_lat=4, n_lon=10)]
     rows = [k["ws_top"] + 0.55]
     if p.windows and len(p.windows) > 1 and p.rear_style != "cab":
         rows.append(rows[0] + 0.85)
     if p.rear_style == "cab" and p.extra.get("crew", True):
         rows.append(rows[0] + 0.8)
-    for s in rows:
+    last = None
+    for r, s in enumerate(rows):
         if s > k["end"] - 0.3:
             break
-        zb, zt, hw, zf = at(s)
-        top = zb + 0.8 * (zt - zb)  # headrests reach well into the side windows
-        bottom = zf + 0.2
-        out.append(superellipsoid([L - s, 0.0, 0.5 * (top + bottom)],
-                                  [0.14, hw - 0.15, 0.5 * (top - bottom)],
-                                  INTERIOR, power=4.0,
+        out += _seat_row(p, L - s, *at(s), bench=r > 0)
+        last = s
+    if last is not None and p.rear_style in ("notch", "fastback", "hatch", "box"):
+        out += _load_floor(p, k, last, at)
+    return out
+
+
+def _seat_row(p: CarParams, xs: float, zb, zt, hw, zf, bench: bool) -> list[Part]:
+    """One seat row whose seat backs stand at ``xs``: cushions, backs and headrests. Below the
+    wheel-arch tops everything keeps clear of the wheel wells (``|y| <= inner``)."""
+    inner = hw - p.wheel_width - 0.2
+    arch_top = 2 * p.wheel_radius + 0.1
+    cushion = min(zf + 0.36, zb - 0.3)
+    back_top = min(zb + (0.04 if bench else 0.08), cushion + 0.65)
+    head_top = min(back_top + 0.28, zt - 0.08)
+    if bench:
+        seats = [(0.0, hw - 0.14)]
+        heads = [sy * min(0.40, hw - 0.3) for sy in (1.0, -1.0)]
+    else:
+        yc = min(0.37, hw - 0.39)
+        seats = [(sy * yc, min(0.25, yc - 0.06)) for sy in (1.0, -1.0)]
+        heads = [sy * yc for sy in (1.0, -1.0)]
+    out = []
+    for y, h in seats:
+        lo, hi = max(y - h, -inner), min(y + h, inner)  # below the arches
+        if hi - lo > 0.1:
+            out.append(box_part([xs + 0.05, lo, cushion - 0.15], [xs + 0.45, hi, cushion],
+                                INTERIOR))
+        z_mid = min(max(arch_top, cushion), back_top - 0.1)
+        if z_mid > cushion + 0.05 and hi - lo > 0.1:
+            out.append(box_part([xs - 0.07, lo, cushion], [xs + 0.07, hi, z_mid], INTERIOR))
+        else:
+            z_mid = cushion
+        out.append(superellipsoid([xs, y, 0.5 * (z_mid + back_top)],
+                                  [0.07, h, 0.5 * (back_top - z_mid)], INTERIOR, power=4.0,
                                   n_lat=4, n_lon=10))
+    hz = min(0.1, 0.5 * (head_top - back_top - 0.04))  # 4 cm of posts under the headrest
+    if hz > 0.04:
+        for y in heads:
+            out.append(superellipsoid([xs - 0.02, y, head_top - hz], [0.05, 0.13, hz],
+                                      INTERIOR, power=4.0, n_lat=4, n_lon=10))
+    return out
+
+
+def _load_floor(p: CarParams, k: dict, s_row: float, at) -> list[Part]:
+    """What lies behind the last seat row, under the rear glass (docstring of `_interior`)."""
+    L = p.length
+    s0 = s_row + 0.1
+    if p.rear_style in ("notch", "fastback"):
+        s1 = k["rw_end"] - 0.05
+        if s1 - s0 < 0.15:
+            return []
+        zb, zt, hw, zf = at(s1)
+        z = p.deck_height - 0.04
+        return [box_part([L - s1, -(hw - 0.2), z - 0.02], [L - s0, hw - 0.2, z], INTERIOR)]
+    s1 = k["end"] - 0.12
+    if s1 - s0 < 0.25:
+        return []
+    zb, zt, hw, zf = at(s1)
+    inner = hw - p.wheel_width - 0.2
+    floor = zf + 0.45
+    out = [box_part([L - s1, -inner, floor - 0.05], [L - s0, inner, floor], INTERIOR)]
+    if p.rear_style == "hatch":
+        out.append(box_part([L - s1, -(hw - 0.2), zb], [L - s0, hw - 0.2, zb + 0.015],
+                            INTERIOR))
     return out
 
 
