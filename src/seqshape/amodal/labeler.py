@@ -18,6 +18,11 @@ Modes:
   associated across frames into tracks (:mod:`.association`, with the log's ego motion when
   it has one) and completed by the estimator.
 
+The sc-* modes estimate each track offline by default (``LabelConfig.online`` False,
+:mod:`seqshape.model.offline`: the sequence is finished, so every estimate uses all the
+track's frames) and refine those estimates (:mod:`.refine`); ``online=True`` (``seqshape label
+--online``) steps the estimator frame by frame as the paper does.
+
 Then per frame the completed clouds are projected into the camera, their alpha shapes filled
 as amodal masks, and ordered by depth for the visible masks (:mod:`.masks`); the result is KINS
 JSON, one file per camera. Category ids of the gt modes come from
@@ -30,6 +35,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +46,9 @@ from seqshape.amodal.masks import ORDERS, InstanceMask, frame_masks
 from seqshape.amodal.refine import REFINE_MODES, TrackInput, complete_tracks
 from seqshape.data.crop import CropConfig
 from seqshape.errors import ConfigError, DataError
+
+if TYPE_CHECKING:
+    from seqshape.model.offline import OfflineConfig
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +102,13 @@ class LabelConfig:
     align: sc-seg: move each completed vehicle in the image so that its predicted visible mask
         best matches the 2D instance mask its points came from (:mod:`seqshape.amodal.align`,
         with ``align_config``); frames filled in a gap have no mask and are not moved.
+    online: sc-* modes: run the estimator online (frame t's estimate has seen frames 0..t
+        only, the paper). Default False: the sequence is finished, so every track is first
+        estimated offline with all its frames (:mod:`seqshape.model.offline`, ``offline``
+        options) and the refinement works on those estimates. Only a
+        :class:`~seqshape.model.Estimator` runs offline; other estimators are stepped.
+    offline: the :class:`~seqshape.model.offline.OfflineConfig` of the offline estimates
+        (None: its defaults, the measured best).
     """
 
     mode: str = "sc-gt"
@@ -116,6 +132,8 @@ class LabelConfig:
     trim: float = 1.0
     align: bool = True
     align_config: AlignConfig = field(default_factory=AlignConfig)
+    online: bool = False
+    offline: OfflineConfig | None = None
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -161,6 +179,71 @@ def load_estimator(checkpoint: str | None):
     return Estimator.from_checkpoint(path)
 
 
+class TrackReplay:
+    """Plays precomputed whole-track estimates back through the ``step``/``reset`` interface
+    that :func:`seqshape.amodal.refine.complete_tracks` drives: its forward pass steps the
+    ids ``"<track id>/fwd"`` through each track's frames in order, its backward pass
+    ``"<track id>/bwd"`` in reverse order; each step returns that frame's estimate. A step whose
+    points do not match the expected frame is an error (the passes changed)."""
+
+    recurrent = True
+
+    def __init__(self, inputs, estimates: dict[str, list]):
+        self.inputs = {inp.track_id: inp for inp in inputs}
+        self.estimates = estimates
+        self.cursor: dict[str, int] = {}
+
+    def reset(self, track_id: str | None = None) -> None:
+        if track_id is None:
+            self.cursor.clear()
+        else:
+            self.cursor.pop(track_id, None)
+
+    def step(self, track_ids, point_lists, **_hints) -> list:
+        from seqshape.errors import SeqshapeError
+
+        out = []
+        for sid, pts in zip(track_ids, point_lists, strict=True):
+            base, _, tag = str(sid).rpartition("/")
+            if base not in self.inputs:
+                raise SeqshapeError(f"offline replay: unknown track {sid!r}")
+            n = len(self.inputs[base].frames)
+            k = self.cursor.get(sid, 0)
+            i = n - 1 - k if tag == "bwd" else k
+            if k >= n or len(pts) != len(self.inputs[base].points[i]):
+                raise SeqshapeError(f"offline replay: step {k} of {sid!r} does not match frame "
+                                    f"{i} of the track")
+            self.cursor[sid] = k + 1
+            out.append(self.estimates[base][i])
+        return out
+
+
+def _has_network(estimator) -> bool:
+    """Whether ``estimator`` is a :class:`~seqshape.model.Estimator` (offline estimation runs
+    its network; anything else, e.g. a test double, is stepped online)."""
+    from seqshape.model.estimator import Estimator
+
+    return isinstance(estimator, Estimator)
+
+
+def offline_replay(estimator, inputs, log=None, config=None) -> TrackReplay:
+    """Every track of ``inputs`` estimated offline (:func:`seqshape.model.offline
+    .estimate_track`, with the tracks' ego poses and the log's timestamps when known), ready
+    to be replayed by :func:`seqshape.amodal.refine.complete_tracks`."""
+    from seqshape.model.offline import estimate_track
+
+    estimates = {}
+    for inp in inputs:
+        times = None
+        if log is not None:
+            times = [log.timestamp(f) for f in inp.frames]
+        egos = None if inp.ego is None else list(np.asarray(inp.ego, dtype=np.float64))
+        estimates[inp.track_id] = estimate_track(estimator, inp.points, timestamps=times,
+                                                 ego_poses=egos, config=config,
+                                                 track_id=inp.track_id)
+    return TrackReplay(inputs, estimates)
+
+
 def label_ids(object_ids) -> dict[str, int]:
     """The integer KINS ``track_id`` of each dataset object id: the id itself when it is an
     integer (KITTI), else its 1-based rank among the log's sorted object ids."""
@@ -173,7 +256,7 @@ def label_ids(object_ids) -> dict[str, int]:
 def gt_track_inputs(log, classes=None, crop: CropConfig | None = None):
     """The log's vehicle tracks (:func:`seqshape.data.extract.extract_tracks`, ``classes``
     default all, ``crop`` default :class:`CropConfig`) and the matching :class:`TrackInput`
-    list."""
+    list (with the tracks' ego poses when the log has them: the offline estimates use them)."""
     from seqshape.data.extract import extract_tracks
     from seqshape.data.sequence import CLASS_TO_KINS
 
@@ -181,9 +264,18 @@ def gt_track_inputs(log, classes=None, crop: CropConfig | None = None):
     ids = label_ids(t.meta["object_id"] for t in tracks)
     inputs = [TrackInput(t.track_id, list(t.meta["frames"]), t.points, t.poses,
                          CLASS_TO_KINS[t.meta["class"]], ids[t.meta["object_id"]],
-                         np.asarray(t.size, dtype=np.float64))
+                         np.asarray(t.size, dtype=np.float64), _track_ego(t))
               for t in tracks]
     return tracks, inputs
+
+
+def _track_ego(track) -> np.ndarray | None:
+    """A track's ``meta["ego_poses"]`` as (T, 4, 4) (sensor -> log frame), or None."""
+    ego = track.meta.get("ego_poses")
+    if not ego:
+        return None
+    ego = np.asarray(ego, dtype=np.float64)
+    return ego if ego.shape == (len(track), 4, 4) else None
 
 
 def add_observed(inp, clouds: list, max_points: int) -> list:
@@ -263,6 +355,8 @@ def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict):
     else:
         est = estimator if estimator is not None else load_estimator(cfg.checkpoint)
         est.reset()
+        if not cfg.online and _has_network(est):
+            est = offline_replay(est, inputs, log, cfg.offline)
         clouds = [c.clouds for c in complete_tracks(
             est, inputs, cfg.refine, cfg.fit_box, cfg.fit_box_below, cfg.trim)]
         if cfg.observed:

@@ -33,11 +33,15 @@ What is computed, per method and per scored frame ``t`` of a track:
 
 Frames whose ground-truth pose is unknown (NaN) are fed but get NaN metrics; tracks without a
 complete shape get NaN CD/EMD. Tracks are processed in chunks of ``batch_tracks``: within a
-chunk, all active tracks go through one ``step`` call per frame index.
+chunk, all active tracks go through one ``step`` call per frame index (with each frame's
+timestamp when the estimator's ``step`` takes ``timestamps=``). A whole-track estimator
+(``estimate_track``, :class:`seqshape.model.offline.OfflineEstimator`: the offline mode) gets
+each track's whole span at once; ``settings["modes"]`` records each method's mode.
 """
 
 from __future__ import annotations
 
+import inspect
 import logging
 import multiprocessing
 from collections.abc import Mapping, Sequence
@@ -127,17 +131,72 @@ def track_hints(est, tracks: Sequence[Track], frames: Sequence[int]) -> dict:
             "ego_poses": egos if any(e is not None for e in egos) else None}
 
 
+def step_takes_timestamps(estimator) -> bool:
+    """Whether ``estimator.step`` accepts ``timestamps=`` (checked once per class: the box
+    fit and older estimators do not)."""
+    cls = type(estimator)
+    if cls not in _TAKES_TIMESTAMPS:
+        try:
+            params = inspect.signature(cls.step).parameters
+        except (TypeError, ValueError, AttributeError):
+            params = {}
+        _TAKES_TIMESTAMPS[cls] = "timestamps" in params
+    return _TAKES_TIMESTAMPS[cls]
+
+
+_TAKES_TIMESTAMPS: dict[type, bool] = {}
+
+
+def step_kwargs(estimator, tracks: Sequence[Track], frames: Sequence[int],
+                hints: bool) -> dict:
+    """Keyword arguments of one ``step`` call: the :func:`track_hints` (when ``hints``) and
+    each track's timestamp of its frame (when the estimator's ``step`` takes them)."""
+    kw = track_hints(estimator, tracks, frames) if hints else {}
+    if step_takes_timestamps(estimator):
+        kw["timestamps"] = [float(tr.timestamps[t]) for tr, t in
+                            zip(tracks, frames, strict=True)]
+    return kw
+
+
+def is_whole_track(estimator) -> bool:
+    """Whether ``estimator`` estimates whole tracks at once (its ``whole_track`` attribute is
+    true and it has ``estimate_track``, e.g. :class:`seqshape.model.offline.OfflineEstimator`)
+    rather than stepping frame by frame."""
+    return bool(getattr(estimator, "whole_track", False)) and callable(
+        getattr(estimator, "estimate_track", None))
+
+
+def track_kwargs(estimator, track: Track, frames: range, hints: bool) -> dict:
+    """Keyword arguments of ``estimator.estimate_track`` for ``frames`` of ``track``: the
+    timestamps, the track id and (when ``hints``) its class and ego poses as
+    :func:`track_hints` gives them frame by frame."""
+    kw: dict[str, Any] = {"timestamps": track.timestamps[frames.start:frames.stop],
+                          "track_id": track.track_id}
+    if hints:
+        inner = getattr(estimator, "estimator", estimator)
+        per_frame = [track_hints(inner, [track], [t]) for t in frames]
+        kw["cls"] = per_frame[0].get("classes", [None])[0] if per_frame else None
+        egos = [(h.get("ego_poses") or [None])[0] for h in per_frame]
+        kw["ego_poses"] = egos if any(e is not None for e in egos) else None
+    return kw
+
+
 def predict_track(estimator: EstimatorLike, track: Track,
                   hints: bool = False) -> tuple[range, list]:
     """Run one track from its first to its last detection; returns ``(frames, estimates)``.
-    ``hints``: pass :func:`track_hints` to the estimator."""
+    ``hints``: pass :func:`track_hints` to the estimator; the frames' timestamps go to a
+    ``step`` that takes them. A whole-track estimator (:func:`is_whole_track`) gets the whole
+    span at once."""
     span = detection_span(track)
     if span is None:
         raise SeqshapeError(f"track {track.track_id} has no frame with points")
     frames = range(*span)
+    if is_whole_track(estimator):
+        return frames, estimator.estimate_track(
+            [track.points[t] for t in frames], **track_kwargs(estimator, track, frames, hints))
     estimator.reset(track.track_id)
     out = [estimator.step([track.track_id], [track.points[t]],
-                          **(track_hints(estimator, [track], [t]) if hints else {}))[0]
+                          **step_kwargs(estimator, [track], [t], hints))[0]
            for t in frames]
     estimator.reset(track.track_id)
     return frames, out
@@ -297,7 +356,10 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
 def _run_chunk(col: _Collector, name: str, est: EstimatorLike, tracks: list[Track],
                spans: list[tuple[int, int]], emd_points: int, emd_every: int, bar,
                hints: bool = True) -> int:
-    """Step all tracks of a chunk together, frame index by frame index; returns K."""
+    """Step all tracks of a chunk together, frame index by frame index (a whole-track
+    estimator takes them one track at a time); returns K."""
+    if is_whole_track(est):
+        return _run_tracks(col, name, est, tracks, spans, emd_points, emd_every, bar, hints)
     length = max(stop - start for start, stop in spans)
     n_det = [0] * len(tracks)
     k_pred = 0
@@ -307,8 +369,8 @@ def _run_chunk(col: _Collector, name: str, est: EstimatorLike, tracks: list[Trac
         active = [j for j, (a, b) in enumerate(spans) if a + i < b]
         ids = [tracks[j].track_id for j in active]
         pts = [tracks[j].points[spans[j][0] + i] for j in active]
-        kw = track_hints(est, [tracks[j] for j in active],
-                         [spans[j][0] + i for j in active]) if hints else {}
+        kw = step_kwargs(est, [tracks[j] for j in active], [spans[j][0] + i for j in active],
+                         hints)
         estimates = est.step(ids, pts, **kw)
         if len(estimates) != len(active):
             raise SeqshapeError(f"estimator {name!r} returned {len(estimates)} estimates for "
@@ -325,6 +387,28 @@ def _run_chunk(col: _Collector, name: str, est: EstimatorLike, tracks: list[Trac
     return k_pred
 
 
+def _run_tracks(col: _Collector, name: str, est, tracks: list[Track],
+                spans: list[tuple[int, int]], emd_points: int, emd_every: int, bar,
+                hints: bool) -> int:
+    """Score a whole-track estimator (:func:`is_whole_track`) on each track of a chunk."""
+    k_pred = 0
+    for tr, span in zip(tracks, spans, strict=True):
+        frames = range(*span)
+        estimates = est.estimate_track([tr.points[t] for t in frames],
+                                       **track_kwargs(est, tr, frames, hints))
+        if len(estimates) != len(frames):
+            raise SeqshapeError(f"estimator {name!r} returned {len(estimates)} estimates for "
+                                f"{len(frames)} frames of track {tr.track_id}")
+        n_det = 0
+        for i, (t, e) in enumerate(zip(frames, estimates, strict=True)):
+            n_det += int(len(tr.points[t]) > 0)
+            k_pred = k_pred or len(e.complete)
+            _score_frame(col, name, tr, t, n_det, e, emd_points,
+                         emd_every > 0 and i % emd_every == 0)
+        bar.update(len(frames))
+    return k_pred
+
+
 def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int) -> list[tuple]:
     out = []
     for tr in tracks:
@@ -338,6 +422,11 @@ def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int) -> li
             value, how = cd_floor(tr.complete, k, stable_seed(seed, tr.track_id), resample)
             out.append((tr.track_id, value, k, how))
     return out
+
+
+def _mode(est) -> str:
+    """``"offline"`` for a whole-track estimator of a recurrent model, else ``"online"``."""
+    return "offline" if is_whole_track(est) and getattr(est, "recurrent", False) else "online"
 
 
 def is_real(tracks: Sequence[Track]) -> bool:
@@ -406,6 +495,7 @@ def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
               "method": np.array([f[3] for f in fl], dtype=str)}
     settings = dict(n_tracks=len(tracks), emd_points=emd_points, emd_every=emd_every,
                     floor=floor, seed=seed, methods=list(estimators), hints=hints,
+                    modes={name: _mode(est) for name, est in estimators.items()},
                     n_pred_points=k_of, real=is_real(tracks),
                     n_reference_tracks=sum(tr.complete is not None for tr in tracks))
     return EvalResult(records, floors, settings)

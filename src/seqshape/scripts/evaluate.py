@@ -8,6 +8,11 @@ Real Track datasets (``seqshape tracks``; their tracks' meta say ``source: "real
 evaluated the same way, with the classical box fit (:class:`seqshape.model.boxfit
 .BoxFitEstimator`) as a third row by default and the breakdowns by class, distance and points
 per frame in the reports.
+
+``--offline`` runs the sequential model offline (:mod:`seqshape.model.offline`: every frame's
+estimate uses the whole track, future frames too), as the auto-labeller does; the per-frame
+baseline and the box fit have no state to share between frames and are unchanged by it.
+``metrics.json`` (``settings.modes``) and ``metrics.md`` say which mode each method ran in.
 """
 
 from __future__ import annotations
@@ -54,6 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--view", default="auto",
                         help="track id for track_view.html, 'auto' (longest track) or 'none'")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--offline", action="store_true",
+                        help="run the sequential model offline: every frame's estimate uses the "
+                             "whole track, future frames too (seqshape.model.offline; the "
+                             "per-frame baseline and the box fit are unchanged by it)")
     parser.add_argument("--no-hints", dest="hints", action="store_false",
                         help="feed the networks the points alone: no class and no ego poses "
                              "(the heading step then never acts; docs/evaluation.md)")
@@ -126,11 +135,23 @@ def evaluate_to(out: Path, dataset, estimators: dict, max_tracks: int | None = N
     result.settings["seconds"] = round(time.perf_counter() - t0, 1)
     result.settings["data"] = str(dataset.path)
     summary = write_metrics(out, result)
+    mode_note(out / "metrics.md", result.settings.get("modes", {}))
     write_plots(out, result)
     track = choose_view_track(dataset, view, max_tracks)
     if track is not None:
         write_track_html(out / "track_view.html", track, estimators)
     return summary
+
+
+def mode_note(path: Path, modes: dict) -> None:
+    """Append the methods' modes (online / offline) to ``metrics.md``."""
+    from seqshape._io import atomic_write_text, read_text
+
+    if not modes:
+        return
+    text = ", ".join(f"{m} {v}" for m, v in modes.items())
+    atomic_write_text(path, read_text(path, "metrics") + f"- Mode: {text} (offline: every "
+                      f"frame's estimate uses the whole track; docs/model.md).\n")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -142,17 +163,22 @@ def run(args: argparse.Namespace) -> int:
     dataset = select_split(TrackDataset(args.data), args.split)
     estimators = {"sequential": load_estimator(args.checkpoint, "sequential"),
                   "baseline": load_estimator(args.baseline, "baseline")}
+    if args.offline:
+        from seqshape.model.offline import OfflineEstimator
+
+        estimators["sequential"] = OfflineEstimator(estimators["sequential"])
     use_boxfit = dataset_is_real(dataset) if args.boxfit is None else args.boxfit
     if use_boxfit:
         from seqshape.model.boxfit import BoxFitEstimator
 
-        k = estimators["sequential"].config.num_complete
+        k = estimators["sequential"].model.cfg.num_complete
         estimators["boxfit"] = BoxFitEstimator(method=args.boxfit_method, num_complete=k,
                                                seed=args.seed)
     summary = evaluate_to(args.out, dataset, estimators, args.max_tracks, args.emd_every,
                           args.emd_points, args.workers, args.batch_tracks, args.floor,
                           args.view, args.seed, args.hints)
-    print(metrics_markdown(summary))
+    print(metrics_markdown(summary)
+          + f"- Mode: sequential {'offline' if args.offline else 'online'}.")
     print(f"wrote {args.out}/metrics.json, metrics.md, per_frame.csv, plots"
           f"{', track_view.html' if args.view != 'none' else ''}")
     return 0

@@ -64,6 +64,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-observed", dest="observed", action="store_false",
                         help="sc-*: do not add each frame's own segmented points to its "
                              "completed cloud before the alpha shape")
+    parser.add_argument("--online", action="store_true",
+                        help="sc-*: run the estimator online, frame t seeing frames 0..t only "
+                             "(default: offline, every estimate uses the whole track; "
+                             "docs/model.md, 'Offline mode')")
     parser.add_argument("--order", choices=ORDERS, default="pixel",
                         help="occlusion rule: per-pixel depth or median depth")
     parser.add_argument("--alpha", type=float, default=None,
@@ -163,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
                       fit_box_below=args.fit_box_below, observed=args.observed,
                       mask_fallback=args.mask_fallback, align=args.align, trim=args.trim,
                       instances=str(args.instances) if args.instances else None,
-                      polygons=args.polygons)
+                      polygons=args.polygons, online=args.online)
     if args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
     if args.mode != "gt-accumulation":

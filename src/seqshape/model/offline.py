@@ -1,0 +1,525 @@
+"""Offline (whole-track) estimation: every frame's estimate may use the track's future frames.
+
+Auto-labelling runs after the drive with the whole track at hand. :func:`estimate_track` runs
+a trained :class:`~seqshape.model.Estimator`'s network over one whole track (one batched
+forward pass per pass, not one call per frame) and adds no trained parameters, so it works
+with the shipped weights and with any later checkpoint. An :class:`OfflineConfig` picks the
+pieces (docs/model.md, section "Offline mode", has their measured figures):
+
+* ``shape``: where each frame's complete shape comes from. ``"online"``: the frame's own
+  estimate after frames ``0..t`` (the paper). ``"final"``: the shape after the track's last
+  frame with points (its state has seen every frame), carried to every frame.
+  ``"two-pass"``: the network is run over the track a second time starting from that final
+  state, so every frame's estimate has seen all frames (frames from the last detection on
+  keep the first pass: it had seen everything there). ``"bidirectional"``: the network is
+  also run over the reversed track; each frame takes the direction that has seen more
+  detections.
+* ``pose``: ``"online"``, ``"two-pass"`` (as above) or ``"bidirectional"`` (the two
+  directions' centres, and their yaws when they agree within 90 degrees, averaged with
+  weights the detections each has seen).
+* ``smooth``: the poses smoothed along the whole track in the fixed frame of the ego poses
+  (:func:`seqshape.amodal.smooth.smooth_track_poses`: robust local quadratic fit of the
+  centres, heading from the motion of a moving vehicle, else the track's axial mean yaw).
+* ``heading``: make the yaw consistent along the whole track in a fixed frame (needs ego
+  poses, or a static sensor): the motion direction over a window centred on each frame (both
+  directions in time) where the vehicle moves steadily, else a vote over the whole track
+  weighted by closeness in time (:func:`consistent_flips`). Without it the online causal
+  heading step of the estimator (:mod:`seqshape.model.heading`) is applied.
+
+A shape moved to a pose other than the one it was estimated with is taken into its canonical
+frame with its own pose (turned by pi when that is nearer the new yaw, so that it stays where
+it was estimated) and placed with the new pose; a heading flip turns the yaw only (as the
+online heading step does). The default, the measured best, is the online shape and pose,
+smoothed, with the whole-track heading.
+
+``mode="online"`` reproduces :meth:`Estimator.step` called frame by frame (same resampling of
+large frames, same input scale, same heading step). On a track of one frame every offline
+configuration equals the online estimate. The per-frame baseline has no state to share
+between frames: for it offline equals online.
+
+>>> est = Estimator.from_pretrained("sequential")                      # doctest: +SKIP
+>>> out = estimate_track(est, [pts0, pts1, pts2], ego_poses=egos)       # doctest: +SKIP
+>>> out[0].pose                                                        # doctest: +SKIP
+array([12.1, -3.4, -0.9, 0.31])
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from seqshape.data.windows import points_length, resample_frame
+from seqshape.errors import ConfigError
+from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+from seqshape.model.estimator import CLASS_MIN_LENGTH, Estimate
+from seqshape.model.heading import (
+    HeadingConfig,
+    HeadingFilter,
+    motion_direction,
+    pose_yaw,
+    wrap_angle,
+)
+
+MODES = ("online", "offline")
+SHAPE_SOURCES = ("online", "final", "two-pass", "bidirectional")
+POSE_SOURCES = ("online", "two-pass", "bidirectional")
+
+
+@dataclass(frozen=True)
+class OfflineConfig:
+    """What offline estimation uses (module doc). The defaults are the measured best on the
+    paper-preset val split (docs/model.md, "Offline mode")."""
+
+    shape: str = "online"
+    """Source of each frame's complete shape: ``"online"``, ``"final"`` or ``"two-pass"``."""
+    pose: str = "online"
+    """Source of each frame's pose: ``"online"`` or ``"two-pass"``."""
+    smooth: bool = True
+    """Smooth the poses along the track in the fixed frame of the ego poses (the sensor frame
+    without them) with :func:`seqshape.amodal.smooth.smooth_track_poses` (a robust local
+    quadratic fit of the centres; headings from the motion or the track's axial mean)."""
+    heading: bool = True
+    """Whole-track heading consistency (:func:`consistent_flips`) instead of the online
+    causal heading step."""
+    vote_decay: float = 0.95
+    """Whole-track heading vote: weight ``vote_decay ** |t - j|`` of frame j's yaw at frame
+    t (1 = a plain majority over the whole track)."""
+
+    def __post_init__(self):
+        if self.shape not in SHAPE_SOURCES:
+            raise ConfigError(f"OfflineConfig.shape must be one of {SHAPE_SOURCES}, got "
+                              f"{self.shape!r}")
+        if self.pose not in POSE_SOURCES:
+            raise ConfigError(f"OfflineConfig.pose must be one of {POSE_SOURCES}, got "
+                              f"{self.pose!r}")
+        if not 0.0 < float(self.vote_decay) <= 1.0:
+            raise ConfigError(f"OfflineConfig.vote_decay must be in (0, 1], got "
+                              f"{self.vote_decay}")
+
+    @property
+    def two_pass(self) -> bool:
+        """Whether the second pass is needed."""
+        return self.shape == "two-pass" or self.pose == "two-pass"
+
+    @property
+    def name(self) -> str:
+        """A short label, e.g. ``shape=final,pose=online,heading``."""
+        return (f"shape={self.shape},pose={self.pose}" + (",smooth" if self.smooth else "")
+                + (",heading" if self.heading else ""))
+
+
+def estimate_track(estimator, points: Sequence[np.ndarray], timestamps=None, size=None,
+                   cls: str | None = None, ego_poses: Sequence | None = None,
+                   mode: str = "offline", config: OfflineConfig | None = None,
+                   track_id: str = "track") -> list[Estimate]:
+    """Estimate shape and pose in every frame of one track; one :class:`Estimate` per frame.
+
+    Args:
+        estimator: a :class:`~seqshape.model.Estimator` (its network, seed and heading
+            options are used; its live track states are neither read nor changed).
+        points: per frame an (N_t, 3) array in that frame's sensor frame (N_t may be 0; rows
+            with NaN/inf are dropped).
+        timestamps: (T,) seconds (any origin), or None: the time steps of a
+            ``motion_input`` network (without them, the estimator's ``frame_period``).
+        size: a box (l, w, h) or a length (m) hint for the input scale, as in
+            :meth:`Estimator.step` (only a ``scale_norm="length"`` model uses it).
+        cls: vehicle class hint (car, van, truck, bus, trailer), as in :meth:`Estimator.step`.
+        ego_poses: per frame a (4, 4) sensor frame -> fixed frame (entries may be None), or
+            None: the heading evidence from motion.
+        mode: ``"offline"`` (uses every frame for every estimate) or ``"online"`` (frame t
+            sees frames 0..t only: equals :meth:`Estimator.step` frame by frame).
+        config: the offline pieces (:class:`OfflineConfig`; default: the measured best).
+        track_id: the id written into the estimates; it also seeds the random subsets of frames
+            with more points than the network takes, as :meth:`Estimator.step` does.
+
+    Returns:
+        list of :class:`~seqshape.model.Estimate`, in each frame's sensor frame.
+    """
+    if mode not in MODES:
+        raise ConfigError(f"mode must be one of {MODES}, got {mode!r}")
+    cfg = config or OfflineConfig()
+    frames, raw = _frames(estimator, points, track_id)
+    n_frames = len(frames)
+    if n_frames == 0:
+        return []
+    egos = _ego_list(ego_poses, n_frames)
+    times = _times(timestamps, n_frames)
+    counts = np.array([len(f) for f in frames], dtype=np.int64)
+    model = estimator.model
+    scales = _scales(model, frames, size, cls)
+    batch, lengths = _batch(frames)
+    motion = _motion(estimator, raw, times)
+    first = _run(model, batch, lengths, scales, motion)
+    offline = mode == "offline" and model.recurrent and counts.any()
+    if not offline:
+        return _finish(estimator, track_id, first["complete"], first["pose"], counts, scales,
+                       egos, None)
+    last = int(np.flatnonzero(counts)[-1])
+    passes = {"online": first}
+    if cfg.two_pass:
+        final_scale = None if scales is None else np.full(n_frames, scales[last])
+        second = _run(model, batch, lengths, final_scale, motion, hidden=first["hidden"],
+                      gap=first["gap"])
+        for key in ("complete", "pose"):  # from the last detection on, pass 1 saw it all
+            second[key][last:] = first[key][last:]
+        passes["two-pass"] = second
+    if "bidirectional" in (cfg.shape, cfg.pose):
+        passes["bidirectional"] = _bidirectional(
+            model, frames, first, size, cls,
+            _motion(estimator, raw[::-1], None if times is None else times[-1] - times[::-1]))
+    poses = passes[cfg.pose]["pose"].copy()
+    if cfg.smooth:
+        poses = _smooth(poses, counts > 0, egos, times)
+    if cfg.shape == "final":
+        complete = np.broadcast_to(first["complete"][last], first["complete"].shape)
+        own = np.broadcast_to(first["pose"][last], poses.shape)
+    else:
+        complete, own = passes[cfg.shape]["complete"], passes[cfg.shape]["pose"]
+    complete = _place(complete, own, poses)
+    flips = (consistent_flips(poses, egos, counts > 0, estimator.heading, cfg.vote_decay)
+             if cfg.heading else None)
+    return _finish(estimator, track_id, complete, poses, counts, scales, egos, flips)
+
+
+def _bidirectional(model, frames: list[np.ndarray], first: dict, size, cls,
+                   motion: dict) -> dict:
+    """Per frame the forward (first-pass) and the backward estimate (the network run over the
+    reversed track) combined: the centres averaged with weights the detections each has seen
+    (frames with points up to t forwards, from t backwards), the yaws likewise when they agree
+    within 90 degrees, else the better-informed one's; the shape of the better-informed
+    direction."""
+    back_frames = frames[::-1]
+    scales = _scales(model, back_frames, size, cls)
+    batch, lengths = _batch(back_frames)
+    back = _run(model, batch, lengths, scales, motion)
+    b_pose, b_complete = back["pose"][::-1], back["complete"][::-1]
+    has = np.array([len(f) > 0 for f in frames], dtype=np.float64)
+    w_f, w_b = np.cumsum(has), np.cumsum(has[::-1])[::-1]
+    f_pose = first["pose"]
+    use_b = w_b > w_f
+    pose = np.where(use_b[:, None], b_pose, f_pose).copy()
+    agree = np.abs(_wrap(b_pose[:, 3] - f_pose[:, 3])) <= math.pi / 2
+    wf = w_f / np.maximum(w_f + w_b, 1e-9)
+    pose[:, :3] = wf[:, None] * f_pose[:, :3] + (1.0 - wf[:, None]) * b_pose[:, :3]
+    mean_yaw = np.arctan2(wf * np.sin(f_pose[:, 3]) + (1 - wf) * np.sin(b_pose[:, 3]),
+                          wf * np.cos(f_pose[:, 3]) + (1 - wf) * np.cos(b_pose[:, 3]))
+    pose[agree, 3] = mean_yaw[agree]
+    complete = np.where(use_b[:, None, None], b_complete, first["complete"])
+    own = np.where(use_b[:, None], b_pose, f_pose)
+    return {"pose": pose, "complete": _place(complete, own, pose)}
+
+
+def _smooth(poses: np.ndarray, valid: np.ndarray, egos, times: np.ndarray | None
+            ) -> np.ndarray:
+    """:func:`seqshape.amodal.smooth.smooth_track_poses` of the poses over the frame index
+    (its window counts frames), at the frame rate of the timestamps (10 Hz without them);
+    in the fixed frame of the ego poses when every frame has one."""
+    from seqshape.amodal.smooth import smooth_track_poses
+
+    rate = 10.0
+    if times is not None and len(times) > 1:
+        step = float(np.median(np.diff(times)))
+        rate = 1.0 / step if step > 0 else rate
+    ego = None
+    if egos is not None and all(e is not None for e in egos):
+        ego = np.stack(egos)
+    return smooth_track_poses(poses, np.arange(len(poses), dtype=np.float64), ego,
+                              rate_hz=rate, valid=valid)
+
+
+def _place(complete: np.ndarray, own: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Shapes ``complete`` (T, K, 3) estimated with poses ``own`` (T, 4), moved to ``poses``:
+    each taken into its canonical frame with its own pose (turned by pi when that is nearer
+    the new yaw: the shape stays where it was estimated, only its front is relabelled) and
+    placed with the new pose. Frames whose pose is unchanged keep their shape as it is."""
+    out = np.array(complete, dtype=np.float32)
+    for t in range(len(poses)):
+        if np.array_equal(own[t], poses[t]):
+            continue
+        mine = np.array(own[t], dtype=np.float64)
+        if abs(wrap_angle(mine[3] - poses[t, 3])) > math.pi / 2:
+            mine[3] = wrap_angle(mine[3] + math.pi)
+        out[t] = canonical_to_sensor(sensor_to_canonical(complete[t], mine), poses[t])
+    return out
+
+
+def _frames(estimator, points: Sequence[np.ndarray], track_id: str
+            ) -> tuple[list[np.ndarray], np.ndarray]:
+    """The frames as the network gets them: finite rows, at most N (random subsets drawn
+    with the estimator's per-track generator, in frame order, as :meth:`Estimator.step`),
+    and the finite points per frame before that subset (T,)."""
+    n_max = estimator.model.cfg.num_points
+    rng = np.random.default_rng([estimator.seed, zlib.crc32(str(track_id).encode("utf-8"))])
+    out, raw = [], []
+    for i, pts in enumerate(points):
+        pts = np.asarray(pts, dtype=np.float32)
+        if pts.size == 0:
+            pts = pts.reshape(0, 3)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ConfigError(f"points[{i}] must have shape (N, 3), got {pts.shape}")
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        raw.append(len(pts))
+        out.append(pts if len(pts) <= n_max else resample_frame(pts, n_max, rng)[0])
+    return out, np.asarray(raw, dtype=np.int64)
+
+
+def _ego_list(ego_poses: Sequence | None, n: int) -> list[np.ndarray | None] | None:
+    if ego_poses is None:
+        return None
+    if len(ego_poses) != n:
+        raise ConfigError(f"{n} frames of points but {len(ego_poses)} ego poses")
+    out = []
+    for i, e in enumerate(ego_poses):
+        if e is None:
+            out.append(None)
+            continue
+        e = np.asarray(e, dtype=np.float64)
+        if e.shape != (4, 4) or not np.all(np.isfinite(e)):
+            raise ConfigError(f"ego_poses[{i}] must be a finite (4, 4) matrix, got shape "
+                              f"{e.shape}")
+        out.append(e)
+    return out if any(e is not None for e in out) else None
+
+
+def _times(timestamps, n: int) -> np.ndarray | None:
+    if timestamps is None:
+        return None
+    t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    if len(t) != n or not np.all(np.isfinite(t)):
+        raise ConfigError(f"timestamps must be {n} finite values (one per frame), got "
+                          f"{len(t)}")
+    return t
+
+
+def _scales(model, frames: list[np.ndarray], size, cls) -> np.ndarray | None:
+    """(T,) input scales of a ``scale_norm="length"`` model, as :meth:`Estimator.step` sets
+    them frame by frame (None for other models)."""
+    mcfg = model.cfg
+    if mcfg.scale_norm == "none":
+        return None
+    hint = None
+    if size is not None:
+        arr = np.asarray(size, dtype=np.float64).reshape(-1)
+        if arr.size == 0 or not np.isfinite(arr[0]) or arr[0] <= 0:
+            raise ConfigError(f"size must be a positive length or a box (l, w, h), got "
+                              f"{size!r}")
+        hint = float(arr[0])
+    if cls and str(cls) not in CLASS_MIN_LENGTH:
+        raise ConfigError(f"unknown vehicle class {cls!r}; expected one of "
+                          f"{sorted(CLASS_MIN_LENGTH)} or None")
+    floor = CLASS_MIN_LENGTH[str(cls)] if cls else 0.0
+    length, out = 0.0, []
+    for f in frames:
+        if len(f):
+            here = points_length(f)
+            length = max(length, here) if model.recurrent else here
+        out.append(mcfg.scale_for(hint if hint is not None else max(length, floor)))
+    return np.asarray(out, dtype=np.float64)
+
+
+def _batch(frames: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+    """(1, T, N, 3) points padded cyclically per frame and (1, T) lengths."""
+    lengths = [len(f) for f in frames]
+    n = max(1, max(lengths))
+    batch = np.zeros((1, len(frames), n, 3), np.float32)
+    for t, f in enumerate(frames):
+        if len(f):
+            batch[0, t] = np.resize(f, (n, 3))
+    return torch.from_numpy(batch), torch.tensor([lengths], dtype=torch.int64)
+
+
+def _motion(estimator, raw: np.ndarray, times: np.ndarray | None) -> dict:
+    """The motion inputs of a ``motion_input`` network for the whole track, as
+    :meth:`Estimator.step` gives them frame by frame (empty for other networks): ``counts``
+    (1, T) points before resampling and ``dts`` (1, T) seconds since the previous frame (the
+    first frame, and every frame without timestamps: the estimator's ``frame_period``)."""
+    if not getattr(estimator.model, "motion", False):
+        return {}
+    period = float(getattr(estimator, "frame_period", 0.1))
+    dts = np.full(len(raw), period)
+    if times is not None and len(times) > 1:
+        dts[1:] = np.diff(times)
+    return {"counts": torch.as_tensor(raw, dtype=torch.int64)[None],
+            "dts": torch.as_tensor(dts, dtype=torch.float64).float()[None]}
+
+
+def _run(model, batch: torch.Tensor, lengths: torch.Tensor, scales: np.ndarray | None,
+         motion: dict, hidden: torch.Tensor | None = None,
+         gap: torch.Tensor | None = None) -> dict:
+    """One pass of the network over the whole track from ``hidden`` (None: a fresh track):
+    numpy ``complete`` (T, K, 3) float32, ``pose`` (T, 4) float64, and the final ``hidden``
+    and ``gap`` (time since the last detection; None for networks without it)."""
+    kw = dict(motion)
+    if scales is not None:
+        kw["scale"] = torch.as_tensor(scales, dtype=torch.float32)[None]
+    if gap is not None and motion:
+        kw["gap"] = gap
+    with torch.inference_mode():
+        out = model(batch, lengths, hidden=hidden, **kw)
+    return {"complete": out["complete"][0].numpy(), "pose": out["pose"][0].double().numpy(),
+            "hidden": out["hidden"].clone(), "gap": out.get("gap")}
+
+
+def _finish(estimator, track_id: str, complete: np.ndarray, poses: np.ndarray,
+            counts: np.ndarray, scales: np.ndarray | None, egos, flips) -> list[Estimate]:
+    """Estimates with the heading step: ``flips`` (whole track) or the estimator's online
+    causal heading filter (when ``flips`` is None)."""
+    heading = estimator.heading
+    filt = HeadingFilter(heading) if (egos is not None or heading.active_without_poses) \
+        else None
+    out = []
+    for t in range(len(counts)):
+        est = Estimate(str(track_id), np.array(complete[t], dtype=np.float32),
+                       np.array(poses[t], dtype=np.float64), int(counts[t]))
+        if scales is not None:
+            est.scale = float(scales[t])
+        ego = None if egos is None else egos[t]
+        if flips is not None:
+            flip = bool(flips[t])
+        elif filt is not None and (ego is not None or heading.active_without_poses):
+            flip = filt.update(est.pose, ego, est.num_points > 0)
+        else:
+            flip = False
+        if flip:
+            est.pose[3] = wrap_angle(est.pose[3] + math.pi)
+            est.flipped = True
+        out.append(est)
+    return out
+
+
+def consistent_flips(poses: np.ndarray, ego_poses: Sequence | None, has_points: np.ndarray,
+                     cfg: HeadingConfig | None = None, vote_decay: float = 0.95) -> np.ndarray:
+    """Which frames' yaws to turn by pi so the heading is consistent along the whole track.
+
+    In the fixed frame of ``ego_poses`` (per frame (4, 4) sensor -> fixed, or None; with
+    ``cfg.static_sensor`` the sensor frame itself; with neither nothing is flipped): where the
+    estimated centres of the frames with points move steadily over a window of
+    ``cfg.motion_frames`` of them centred on the frame (the past and the future,
+    :func:`~seqshape.model.heading.motion_direction` with ``min_travel`` and
+    ``min_consistency``), the motion direction is the heading. Elsewhere the heading is the
+    vote of the whole track: the unit vectors of the frames' yaws (those of moving frames
+    aligned to their motion and weighted ``cfg.motion_weight``), weighted ``vote_decay **
+    |t - j|``. A yaw more than 90 degrees from its frame's heading is flipped.
+
+    Args:
+        poses: (T, 4) per-frame (x, y, z, yaw) in each frame's sensor frame.
+        ego_poses: per frame a (4, 4) matrix or None (that frame then takes no part), or None.
+        has_points: (T,) bool, frames with points (only they are evidence).
+        cfg: motion and vote options (:class:`~seqshape.model.heading.HeadingConfig`;
+            ``motion=False`` leaves only the vote).
+        vote_decay: temporal weight of the vote, in (0, 1].
+
+    Returns:
+        (T,) bool.
+    """
+    cfg = cfg or HeadingConfig()
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+    n = len(poses)
+    flips = np.zeros(n, dtype=bool)
+    yaw, centre, known = _fixed_frame(poses, ego_poses, cfg.static_sensor)
+    if known is None:
+        return flips
+    evidence = np.flatnonzero(known & np.asarray(has_points, dtype=bool))
+    if len(evidence) == 0:
+        return flips
+    motion = np.full(n, np.nan)
+    if cfg.motion:
+        motion = _window_motion(centre, evidence, n, cfg)
+    moving = np.isfinite(motion)
+    aligned = np.where(moving & (np.abs(_wrap(yaw - motion)) > math.pi / 2), yaw + math.pi, yaw)
+    weight = np.where(moving, cfg.motion_weight, 1.0)[evidence]
+    unit = np.stack([np.cos(aligned[evidence]), np.sin(aligned[evidence])], axis=1)
+    for t in np.flatnonzero(known):
+        if moving[t]:
+            target = motion[t]
+        else:
+            w = weight * float(vote_decay) ** np.abs(evidence - t)
+            vote = (w[:, None] * unit).sum(0)
+            if not np.any(vote):
+                continue
+            target = math.atan2(vote[1], vote[0])
+        flips[t] = abs(wrap_angle(yaw[t] - target)) > math.pi / 2
+    return flips
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _fixed_frame(poses: np.ndarray, ego_poses, static: bool):
+    """Yaws (T,), planar centres (T, 2) in the fixed frame and which frames have one (None
+    when there is no fixed frame)."""
+    n = len(poses)
+    if ego_poses is None:
+        if not static:
+            return None, None, None
+        return poses[:, 3].copy(), poses[:, :2].copy(), np.ones(n, dtype=bool)
+    yaw, centre, known = np.zeros(n), np.zeros((n, 2)), np.zeros(n, dtype=bool)
+    for t, ego in enumerate(ego_poses):
+        if ego is None:
+            continue
+        ego = np.asarray(ego, dtype=np.float64)
+        centre[t] = (ego[:3, :3] @ poses[t, :3] + ego[:3, 3])[:2]
+        yaw[t] = poses[t, 3] + pose_yaw(ego)
+        known[t] = True
+    return yaw, centre, known if known.any() else None
+
+
+def _window_motion(centre: np.ndarray, evidence: np.ndarray, n: int,
+                   cfg: HeadingConfig) -> np.ndarray:
+    """(T,) confident motion direction around each frame (NaN where none): the line through
+    the ``motion_frames`` frames with points nearest in order, centred on the frame."""
+    k = min(int(cfg.motion_frames), len(evidence))
+    out = np.full(n, np.nan)
+    if k < 3:
+        return out
+    for t in range(n):
+        pos = int(np.searchsorted(evidence, t))
+        start = min(max(pos - k // 2, 0), len(evidence) - k)
+        idx = evidence[start:start + k]
+        direction = motion_direction(centre[idx], cfg.min_travel, cfg.min_consistency)
+        if direction is not None:
+            out[t] = direction
+    return out
+
+
+class OfflineEstimator:
+    """An :class:`~seqshape.model.Estimator` that estimates whole tracks offline
+    (:func:`estimate_track`): what ``seqshape evaluate --offline`` and the labeller run.
+
+    ``estimate_track(points, ...)`` has the arguments of :func:`estimate_track` without the
+    estimator; ``estimator``, ``config``, ``recurrent`` and ``kind`` are the wrapped ones.
+    ``whole_track`` tells :mod:`seqshape.evaluation.runner` to hand it whole tracks.
+    """
+
+    whole_track = True
+
+    def __init__(self, estimator, config: OfflineConfig | None = None):
+        self.estimator = estimator
+        self.config = config or OfflineConfig()
+
+    @property
+    def recurrent(self) -> bool:
+        return self.estimator.recurrent
+
+    @property
+    def kind(self) -> str:
+        return self.estimator.kind
+
+    @property
+    def model(self):
+        return self.estimator.model
+
+    def reset(self, track_id: str | None = None) -> None:
+        """Nothing to drop (whole tracks keep no state); present for the estimator protocol."""
+
+    def estimate_track(self, points: Sequence[np.ndarray], **kwargs) -> list[Estimate]:
+        """:func:`estimate_track` with this estimator and configuration (``mode`` defaults to
+        ``"offline"``)."""
+        kwargs.setdefault("config", self.config)
+        return estimate_track(self.estimator, points, **kwargs)

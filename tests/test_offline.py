@@ -1,0 +1,310 @@
+"""Offline (whole-track) estimation on a tiny random network: its relation to the online
+estimator, the two passes, the whole-track heading, ``evaluate --offline`` and the labeller."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from _model_data import box_track, make_dataset
+
+torch = pytest.importorskip("torch")
+
+from seqshape.errors import ConfigError  # noqa: E402
+from seqshape.geometry import sensor_to_canonical  # noqa: E402
+from seqshape.model import Estimator, ModelConfig, ShapePoseNet  # noqa: E402
+from seqshape.model.offline import (  # noqa: E402
+    OfflineConfig,
+    OfflineEstimator,
+    consistent_flips,
+    estimate_track,
+)
+
+CFG = ModelConfig(num_points=32, encoder1=(16, 32), encoder2=(32, 32), hidden=24,
+                  shape_decoder=(32,), pose_decoder=(32,), num_complete=64,
+                  shape_frame="canonical")
+
+
+def _estimator(recurrent=True, seed=0, cfg=CFG) -> Estimator:
+    torch.manual_seed(seed)
+    return Estimator(ShapePoseNet(cfg, recurrent=recurrent), threads=1)
+
+
+def _track(frames=8, empty=3, seed=1):
+    """Points per frame (frame ``empty`` has none; some frames have more than N = 32 points)
+    and identity-free ego poses (a sensor driving and turning)."""
+    tr = box_track("t", "val", np.random.default_rng(seed), frames, empty)
+    egos = []
+    for k in range(frames):
+        e = np.eye(4)
+        c, s = math.cos(0.05 * k), math.sin(0.05 * k)
+        e[:2, :2] = [[c, -s], [s, c]]
+        e[:3, 3] = [1.5 * k, 0.2 * k, 0.0]
+        egos.append(e)
+    return tr.points, egos
+
+
+def _step_all(est, points, egos=None, times=None):
+    est.reset()
+    out = [est.step(["t"], [p], ego_poses=None if egos is None else [egos[k]],
+                    timestamps=None if times is None else [times[k]])[0]
+           for k, p in enumerate(points)]
+    est.reset()
+    return out
+
+
+def _close(a, b, atol=1e-5):
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(x.pose, y.pose, atol=atol)
+        np.testing.assert_allclose(x.complete, y.complete, atol=atol)
+        assert x.flipped == y.flipped and x.num_points == y.num_points
+
+
+@pytest.mark.parametrize("motion", [False, True])
+def test_online_mode_equals_stepping_frame_by_frame(motion):
+    cfg = ModelConfig(**{**CFG.to_dict(), "motion_input": motion})
+    est = _estimator(cfg=cfg)
+    if motion:  # the motion columns start at zero: make them count
+        with torch.no_grad():
+            for p in est.model.parameters():
+                p.add_(0.05 * torch.randn_like(p))
+    points, egos = _track()
+    times = 100.0 + 0.1 * np.arange(len(points)) + 0.02 * (np.arange(len(points)) == 5)
+    assert max(len(p) for p in points) > CFG.num_points  # exercises the random subsets
+    timed = estimate_track(est, points, ego_poses=egos, timestamps=times, mode="online",
+                           track_id="t")
+    _close(timed, _step_all(est, points, egos, times))
+    untimed = estimate_track(est, points, mode="online", track_id="t")
+    _close(untimed, _step_all(est, points))
+    if motion:  # the time steps reached the network
+        assert not np.allclose(timed[6].complete, untimed[6].complete, atol=1e-5)
+
+
+CONFIGS = [OfflineConfig(),
+           OfflineConfig(shape="two-pass", pose="two-pass", smooth=False, heading=False),
+           OfflineConfig(shape="final", pose="online", smooth=False),
+           OfflineConfig(shape="bidirectional", pose="bidirectional"),
+           OfflineConfig(shape="final", pose="two-pass", heading=False)]
+
+
+@pytest.mark.parametrize("cfg", CONFIGS, ids=lambda c: c.name)
+def test_offline_equals_online_on_one_frame(cfg):
+    est = _estimator()
+    points, egos = _track()
+    online = _step_all(est, points[:1], egos[:1])
+    _close(estimate_track(est, points[:1], ego_poses=egos[:1], config=cfg, track_id="t"),
+           online)
+    _close(estimate_track(est, points[:1], config=cfg, track_id="t"), _step_all(est, points[:1]))
+
+
+def test_baseline_offline_is_its_online_estimate():
+    est = _estimator(recurrent=False)
+    points, egos = _track()
+    _close(estimate_track(est, points, ego_poses=egos, track_id="t"),
+           _step_all(est, points, egos))
+
+
+def _manual(model, frames, hidden=None):
+    """Frame-by-frame forward passes from ``hidden``: per-frame poses and the final state."""
+    poses = []
+    mean, seen = torch.zeros(1, 3), torch.zeros(1, dtype=torch.bool)
+    h = torch.zeros(1, model.state_size) if hidden is None else hidden
+    with torch.inference_mode():
+        for f in frames:
+            pts = torch.zeros(1, 1, max(len(f), 1), 3)
+            if len(f):
+                pts[0, 0] = torch.from_numpy(f)
+            out = model(pts, torch.tensor([[len(f)]]), h, mean, seen)
+            h, mean, seen = out["hidden"], out["mean"], out["seen"][:, -1]
+            poses.append(out["pose"][0, 0].double().numpy())
+    return np.array(poses), h
+
+
+def test_two_pass_starts_every_frame_from_the_final_state():
+    """By hand: pass 1 over the whole track from zeros, then pass 2 from its final state;
+    frame t < last takes pass 2's estimate, frames from the last detection on pass 1's."""
+    est = _estimator()
+    points, _ = _track(frames=6, empty=5)  # the last frame is empty: last detection = 4
+    points = [p[:20] for p in points]  # no random subsets: the hand check feeds them as is
+    first, h_final = _manual(est.model, points)
+    second, _ = _manual(est.model, points, h_final)
+    cfg = OfflineConfig(shape="two-pass", pose="two-pass", smooth=False, heading=False)
+    got = np.array([e.pose for e in estimate_track(est, points, config=cfg)])
+    np.testing.assert_allclose(got[:4], second[:4], atol=1e-5)
+    np.testing.assert_allclose(got[4:], first[4:], atol=1e-5)
+    assert np.abs(second[:4] - first[:4]).max() > 1e-3  # the final state made a difference
+
+
+def test_final_shape_is_the_last_detections_shape_in_every_frame():
+    est = _estimator()
+    points, egos = _track()
+    cfg = OfflineConfig(shape="final", pose="online", smooth=False, heading=False)
+    out = estimate_track(est, points, config=cfg, track_id="t")
+    online = estimate_track(est, points, mode="online", track_id="t")
+    ref = sensor_to_canonical(online[-1].complete, online[-1].pose)
+    for e, o in zip(out, online, strict=True):
+        np.testing.assert_allclose(e.pose, o.pose, atol=1e-6)
+        np.testing.assert_allclose(sensor_to_canonical(e.complete, e.pose), ref, atol=1e-4)
+
+
+def _in_sensor(world_xy, world_yaw, egos):
+    """Poses (T, 4) in each frame's sensor frame from fixed-frame centres and yaws."""
+    out = []
+    for (x, y), yaw, e in zip(world_xy, world_yaw, egos, strict=True):
+        inv = np.linalg.inv(e)
+        c = inv[:3, :3] @ np.array([x, y, 0.0]) + inv[:3, 3]
+        out.append([c[0], c[1], c[2], yaw - math.atan2(e[1, 0], e[0, 0])])
+    return np.array(out)
+
+
+def test_consistent_flips_on_a_reversed_track():
+    """A vehicle driving towards -x in the fixed frame while the network says it faces +x
+    (all but two frames): every frame but those two is flipped; the sensor moves and turns."""
+    n = 14
+    _, egos = _track(frames=n)
+    world = np.c_[30.0 - 1.0 * np.arange(n), np.full(n, 4.0)]
+    yaw = np.zeros(n)
+    yaw[[4, 9]] = math.pi  # the two right ones
+    poses = _in_sensor(world, yaw, egos)
+    flips = consistent_flips(poses, egos, np.ones(n, bool))
+    assert flips.tolist() == [k not in (4, 9) for k in range(n)]
+    # the same track in time order reversed (now driving towards +x): only those two flip
+    back = consistent_flips(_in_sensor(world[::-1], yaw, egos), egos, np.ones(n, bool))
+    assert back.tolist() == [k in (4, 9) for k in range(n)]
+    # no fixed frame, no evidence: nothing flips
+    assert not consistent_flips(poses, None, np.ones(n, bool)).any()
+
+
+def test_consistent_flips_of_a_parked_vehicle_follow_the_track_majority():
+    n = 12
+    _, egos = _track(frames=n)
+    world = np.tile([[20.0, -5.0]], (n, 1))
+    yaw = np.full(n, 0.3)
+    yaw[[0, 1, 11]] += math.pi  # a minority, at both ends of the track
+    has = np.ones(n, bool)
+    has[6] = False  # an empty frame takes part in nothing but is still decided
+    flips = consistent_flips(_in_sensor(world, yaw, egos), egos, has)
+    assert flips.tolist() == [k in (0, 1, 11) for k in range(n)]
+
+
+def test_offline_heading_flips_the_yaw_and_keeps_the_shape():
+    est = _estimator()
+    points, egos = _track()
+    cfg = OfflineConfig(smooth=False, heading=True)
+    online = estimate_track(est, points, mode="online", track_id="t",
+                            config=OfflineConfig(heading=False))
+    out = estimate_track(est, points, ego_poses=egos, config=cfg, track_id="t")
+    flips = consistent_flips(np.array([o.pose for o in online]), egos,
+                             np.array([len(p) > 0 for p in points]), est.heading)
+    for e, o, f in zip(out, online, flips, strict=True):
+        assert e.flipped == f
+        d = (e.pose[3] - o.pose[3] - (math.pi if f else 0.0) + math.pi) % (2 * math.pi)
+        assert abs(d - math.pi) < 1e-9
+        np.testing.assert_allclose(e.complete, o.complete, atol=1e-6)
+
+
+def test_bad_arguments_are_config_errors():
+    est = _estimator()
+    points, egos = _track()
+    with pytest.raises(ConfigError, match="mode"):
+        estimate_track(est, points, mode="both")
+    with pytest.raises(ConfigError, match="shape"):
+        OfflineConfig(shape="mean")
+    with pytest.raises(ConfigError, match="ego poses"):
+        estimate_track(est, points, ego_poses=egos[:2])
+    with pytest.raises(ConfigError, match="timestamps"):
+        estimate_track(est, points, timestamps=[0.0])
+    assert estimate_track(est, []) == []
+
+
+def _checkpoint(path, kind):
+    torch.manual_seed(0)
+    net = ShapePoseNet(CFG, recurrent=kind == "sequential")
+    torch.save({"format": "seqshape-checkpoint", "version": 1, "kind": kind,
+                "model_config": CFG.to_dict(), "train_config": {},
+                "state_dict": net.state_dict(), "metrics": {}}, path)
+    return str(path)
+
+
+def test_evaluate_offline_end_to_end(tmp_path):
+    from seqshape.cli import main
+
+    data = make_dataset(tmp_path / "ds", n_train=1, n_val=2, frames=6)
+    seq, base = _checkpoint(tmp_path / "s.pt", "sequential"), _checkpoint(tmp_path / "b.pt",
+                                                                          "baseline")
+    runs = {}
+    for flag in ([], ["--offline"]):
+        out = tmp_path / ("off" if flag else "on")
+        assert main(["evaluate", "--data", str(data.path), "--checkpoint", seq, "--baseline",
+                     base, "--out", str(out), "--emd-every", "2", "--emd-points", "32",
+                     "--workers", "0", "--view", "auto" if flag else "none", *flag]) == 0
+        runs[bool(flag)] = json.loads((out / "metrics.json").read_text())
+    assert (tmp_path / "off" / "track_view.html").stat().st_size > 0
+    assert runs[True]["settings"]["modes"] == {"sequential": "offline", "baseline": "online"}
+    assert runs[False]["settings"]["modes"]["sequential"] == "online"
+    assert "Mode: sequential offline, baseline online" in (tmp_path / "off" /
+                                                            "metrics.md").read_text()
+    assert runs[True]["baseline"] == runs[False]["baseline"]  # the baseline is per frame
+    assert runs[True]["sequential"] != runs[False]["sequential"]
+
+
+def test_labeller_replays_the_offline_estimates():
+    from seqshape.amodal.labeler import LabelConfig, offline_replay
+    from seqshape.amodal.refine import TrackInput, complete_tracks
+
+    assert LabelConfig().online is False
+    est = _estimator()
+    inputs = []
+    for k in range(2):
+        points, egos = _track(frames=5 + k, seed=k)
+        inputs.append(TrackInput(f"v{k}", list(range(k, 5 + 2 * k)), points, ego=np.stack(egos)))
+    for refine in ("none", "bidirectional"):
+        got = complete_tracks(offline_replay(est, inputs), inputs, refine)
+        for inp, comp in zip(inputs, got, strict=True):
+            ref = estimate_track(est, inp.points, ego_poses=list(inp.ego),
+                                 track_id=inp.track_id)
+            np.testing.assert_allclose(comp.poses, [e.pose for e in ref])
+            for c, e in zip(comp.clouds, ref, strict=True):
+                np.testing.assert_array_equal(c, e.complete)
+
+
+def test_offline_estimator_wraps_an_estimator():
+    est = _estimator()
+    off = OfflineEstimator(est, OfflineConfig(smooth=False))
+    points, _ = _track()
+    assert off.recurrent and off.kind == "sequential"
+    _close(off.estimate_track(points, track_id="t"),
+           estimate_track(est, points, config=OfflineConfig(smooth=False), track_id="t"))
+
+
+def test_predict_track_passes_timestamps_to_a_step_that_takes_them():
+    from seqshape.evaluation.runner import predict_track
+
+    track = box_track("t", "val", np.random.default_rng(3), 5)
+    seen = []
+
+    class Timed:
+        recurrent = True
+
+        def reset(self, track_id=None):
+            pass
+
+        def step(self, track_ids, point_lists, timestamps=None):
+            seen.append(timestamps)
+            return [None] * len(track_ids)
+
+    predict_track(Timed(), track)
+    assert seen == [[t] for t in track.timestamps.tolist()]
+
+
+def test_label_cli_flag_selects_online():
+    import argparse
+
+    from seqshape.scripts.label import add_arguments
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    assert parser.parse_args(["--sequence", "0"]).online is False
+    assert parser.parse_args(["--sequence", "0", "--online"]).online is True
