@@ -46,6 +46,10 @@ def _local_fit(t: np.ndarray, y: np.ndarray, window: float, iterations: int,
             sel = np.flatnonzero(np.abs(t - near) <= window)
         dt = t[sel] - tq
         deg = min(max_deg, len(np.unique(dt)) - 1)
+        if min(np.count_nonzero(dt < 0), np.count_nonzero(dt > 0)) < window / 2:
+            # near a track's end the window is one-sided: a quadratic there extrapolates its
+            # curvature (the first detection's error grew by 2 cm), a line does not
+            deg = min(deg, 1)
         a = np.vander(dt, deg + 1, increasing=True)  # (M, deg+1): 1, dt, dt^2
         w = np.ones(len(sel))
         for _ in range(iterations + 1):
