@@ -12,9 +12,22 @@ box normalised by its size, for cars with ``--min-points`` to ``--max-points`` p
   radial bias);
 * ``face gap``: for frames with a face seen head-on (|view component| >= 0.5 along the box
   axis), the distance (m) from that face to the 98th percentile of the points along the axis;
-* a table of the points' share by height band and radial band (near face ... far face).
+* a table of the points' share by height band and radial position (near face ... far face);
+* the view-angle histogram of each folder's frames (``seqshape.sim.trajectories.view_angle``:
+  0 deg the sensor sees the car's nose, 90 a side, 180 its tail).
+
+``--min-view-deg`` / ``--max-view-deg`` keep only frames with a view angle in that range, so
+that the layout is compared at equal views (a preset with another view mix than the real log
+otherwise differs in every layout number). The histogram counts the frames before this filter
+(after the points filter).
 
     python benchmarks/bm_sim_realism.py REAL_TRACKS SYNTHETIC_DATASET [MORE ...] --labels av2 real
+    python benchmarks/bm_sim_realism.py REAL_TRACKS SYNTHETIC_DATASET --max-view-deg 70
+    python benchmarks/bm_sim_realism.py REAL A_SEED0 A_SEED1 B --labels real a a b  # a: pooled
+
+``--placements N`` also samples N trajectories of a 4.6 x 1.85 m car per placement of
+``seqshape.sim.trajectories.sample_trajectory`` (seed 0, no raycasting) and prints the view
+histogram of their frames within ``--view-range`` m of the sensor (folders then optional).
 
 Each folder is any ``TrackDataset`` folder; a folder with a ``val`` split is read whole (the
 layout does not depend on the split). Nothing is timed.
@@ -30,9 +43,11 @@ from _bench import print_table
 
 from seqshape.data.dataset import TrackDataset
 from seqshape.geometry import sensor_to_canonical
+from seqshape.sim.trajectories import view_angle
 
 Z_BANDS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2)
 R_BANDS = (-1.3, -0.75, -0.25, 0.25, 0.75, 1.3)
+VIEW_BINS = (0, 20, 45, 70, 110, 135, 160, 180.001)
 
 
 def frame_layout(points: np.ndarray, pose: np.ndarray, size: np.ndarray) -> dict:
@@ -59,54 +74,126 @@ def frame_layout(points: np.ndarray, pose: np.ndarray, size: np.ndarray) -> dict
             "gaps": gaps, "radial": radial, "z": z, "range": dist}
 
 
-def layout(folder: Path, min_points: int, max_points: int, max_tracks: int) -> dict:
-    ds = TrackDataset(folder)
-    rows, gaps, radial, z = [], [], [], []
-    for i in range(min(len(ds), max_tracks)):
-        tr = ds[i]
-        if tr.meta.get("class", "car") != "car":
-            continue
+def _car_tracks(folders: list[Path], max_tracks: int):
+    for folder in folders:
+        ds = TrackDataset(folder)
+        for i in range(min(len(ds), max_tracks)):
+            tr = ds[i]
+            if tr.meta.get("class", "car") == "car":
+                yield tr
+
+
+def layout(folders: list[Path], min_points: int, max_points: int, max_tracks: int,
+           views: tuple[float, float] = (0.0, 180.0)) -> dict:
+    """The layout numbers of the car frames of ``folders`` (pooled); ``frames`` 0 (and no
+    layout numbers) when no frame passes the points and view filters."""
+    rows, gaps, radial, z, angles = [], [], [], [], []
+    for tr in _car_tracks(folders, max_tracks):
         for t, pts in enumerate(tr.points):
             if not min_points <= len(pts) <= max_points:
+                continue
+            x, y, _, yaw = tr.poses[t]
+            angles.append(float(view_angle(x, y, yaw)))
+            if not views[0] <= angles[-1] <= views[1]:
                 continue
             f = frame_layout(pts, tr.poses[t], tr.size)
             rows.append((f["far"], f["top"], f["low"], f["offset"], f["range"], len(pts)))
             gaps += f["gaps"]
             radial.append(f["radial"])
             z.append(f["z"])
+    view_hist, _ = np.histogram(angles, VIEW_BINS)
+    views_pct = 100 * view_hist / max(len(angles), 1)
     if not rows:
-        raise SystemExit(f"{folder}: no car frames with {min_points}-{max_points} points")
+        return {"frames": 0, "views": views_pct, "view_frames": len(angles)}
     a = np.array(rows)
     hist, _, _ = np.histogram2d(np.concatenate(z).clip(0, 1.19), np.concatenate(radial).clip(
         -1.29, 1.29), bins=[Z_BANDS, R_BANDS])
     return {"frames": len(a), "far": np.median(a[:, 0]), "top": np.median(a[:, 1]),
             "low": np.median(a[:, 2]), "offset": np.median(a[:, 3]), "range": np.median(a[:, 4]),
             "points": np.median(a[:, 5]), "gap": np.median(gaps) if gaps else float("nan"),
-            "hist": 100 * hist / hist.sum()}
+            "hist": 100 * hist / hist.sum(), "views": views_pct,
+            "view_frames": len(angles)}
+
+
+def placement_views(n: int, max_range: float) -> list[list]:
+    """Rows ``[placement, frames, % per VIEW_BINS bin]`` of ``n`` sampled tracks each."""
+    from seqshape.sim.trajectories import PLACEMENTS, sample_trajectory
+
+    rows = []
+    for placement in PLACEMENTS:
+        rng = np.random.default_rng(0)
+        angles = []
+        for _ in range(n):
+            tr = sample_trajectory(rng, length=4.6, width=1.85, placement=placement)
+            near = np.hypot(tr.x, tr.y) <= max_range
+            angles.append(view_angle(tr.x, tr.y, tr.yaw)[near])
+        a = np.concatenate(angles)
+        hist, _ = np.histogram(a, VIEW_BINS)
+        rows.append([placement, len(a), *(f"{v:.0f}" for v in 100 * hist / max(len(a), 1))])
+    return rows
+
+
+def _view_names() -> list[str]:
+    names = [f"{lo:g}-{hi:g}" for lo, hi in zip(VIEW_BINS[:-1], VIEW_BINS[1:], strict=True)]
+    names[-1] = f"{VIEW_BINS[-2]:g}-180"
+    return names
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("folders", nargs="+", type=Path, help="track folders (real first)")
-    ap.add_argument("--labels", nargs="*", help="a short name per folder")
+    ap.add_argument("folders", nargs="*", type=Path, help="track folders (real first)")
+    ap.add_argument("--labels", nargs="*",
+                    help="a short name per folder; folders with the same name are pooled")
     ap.add_argument("--min-points", type=int, default=100)
     ap.add_argument("--max-points", type=int, default=1000)
     ap.add_argument("--max-tracks", type=int, default=400,
                     help="read at most this many tracks per folder (default 400)")
+    ap.add_argument("--min-view-deg", type=float, default=0.0,
+                    help="keep frames whose view angle (0 nose, 180 tail) is at least this")
+    ap.add_argument("--max-view-deg", type=float, default=180.0,
+                    help="keep frames whose view angle is at most this")
+    ap.add_argument("--placements", type=int, default=0, metavar="N",
+                    help="also print the view histogram of N sampled tracks per placement")
+    ap.add_argument("--view-range", type=float, default=40.0,
+                    help="--placements: count frames within this range (m, default 40)")
     args = ap.parse_args()
+    if not 0 <= args.min_view_deg <= args.max_view_deg <= 180:
+        raise SystemExit("need 0 <= --min-view-deg <= --max-view-deg <= 180")
+    views = (args.min_view_deg, args.max_view_deg)
+    if args.placements:
+        print(f"\nsampled trajectories ({args.placements} per placement, frames within "
+              f"{args.view_range:g} m): % by view angle\n")
+        print_table(["placement", "frames", *_view_names()],
+                    placement_views(args.placements, args.view_range))
+    if not args.folders:
+        if not args.placements:
+            raise SystemExit("give track folders and/or --placements N")
+        return
     labels = args.labels or [f.name for f in args.folders]
     if len(labels) != len(args.folders):
         raise SystemExit("--labels needs one name per folder")
-    res = {lab: layout(f, args.min_points, args.max_points, args.max_tracks)
-           for lab, f in zip(labels, args.folders, strict=True)}
-    print(f"\ncar frames with {args.min_points}-{args.max_points} points (medians over frames)\n")
+    groups: dict[str, list[Path]] = {}
+    for lab, f in zip(labels, args.folders, strict=True):
+        groups.setdefault(lab, []).append(f)
+    res = {lab: layout(fs, args.min_points, args.max_points, args.max_tracks, views)
+           for lab, fs in groups.items()}
+    print(f"\ncar frames with {args.min_points}-{args.max_points} points: % by view angle "
+          "(0 deg nose ... 180 deg tail), all views\n")
+    print_table(["folder", "frames", *_view_names()],
+                [[lab, r["view_frames"], *(f"{v:.0f}" for v in r["views"])]
+                 for lab, r in res.items()])
+    print(f"\ncar frames with {args.min_points}-{args.max_points} points and views "
+          f"{views[0]:g}-{views[1]:g} deg (medians over frames)\n")
     print_table(["folder", "frames", "range m", "points", "far half %", "top %", "low %",
                  "mean offset m", "face gap m"],
                 [[lab, r["frames"], f"{r['range']:.1f}", int(r["points"]), f"{100 * r['far']:.0f}",
                   f"{100 * r['top']:.0f}", f"{100 * r['low']:.0f}", f"{r['offset']:.2f}",
-                  f"{r['gap']:.2f}"] for lab, r in res.items()])
+                  f"{r['gap']:.2f}"] if r["frames"] else [lab, 0, *["-"] * 7]
+                 for lab, r in res.items()])
     bands = [f"{lo:+.2f}..{hi:+.2f}" for lo, hi in zip(R_BANDS[:-1], R_BANDS[1:], strict=True)]
     for lab, r in res.items():
+        if not r["frames"]:
+            continue
         print(f"\n{lab}: % of points by height (share of box height) and radial position "
               "(-1 near face, +1 far face)\n")
         rows = [[f"{Z_BANDS[i]:.1f}-{Z_BANDS[i + 1]:.1f}", *(f"{v:.1f}" for v in r["hist"][i])]

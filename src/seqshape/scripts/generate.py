@@ -32,6 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "instead of the preset's mix)")
     parser.add_argument("--library", choices=("procedural", "fleet"), default=None,
                         help="vehicle library (default: procedural; fleet for --preset real)")
+    parser.add_argument("--placement", choices=("crossing", "traffic"), default=None,
+                        help="where sampled tracks are placed: crossing the line of sight "
+                             "(default; the paper) or in road traffic around a moving ego (the "
+                             "default of --preset real; docs/generation.md)")
     parser.add_argument("--vehicles", type=int, default=None, dest="n_vehicles",
                         help="number of vehicles (default: the preset's; the val share "
                              "scales with it)")
@@ -77,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     config = preset_config(args.preset, n_val_vehicles=n_val, sensor=args.sensor, seed=args.seed,
                            num_points=args.num_points, meshes=meshes, trajectories=trajs,
                            mesh_up=args.mesh_up, mesh_forward=args.mesh_forward,
-                           mesh_scale=args.mesh_scale, library=args.library,
+                           mesh_scale=args.mesh_scale, library=args.library, placement=args.placement,
                            n_vehicles=args.n_vehicles,
                            tracks_per_vehicle=args.tracks_per_vehicle, **_lengths(args))
     s = generate_dataset(config, args.out, workers=args.workers, shard=shard)

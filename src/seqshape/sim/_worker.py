@@ -121,10 +121,23 @@ def _trajectory(i: int, rng, size):
     return tj.sample_trajectory(rng, length=size[0], width=size[1], rate_hz=sensor.rate_hz,
                                 min_distance=cfg.min_distance, max_distance=cfg.max_distance,
                                 min_clearance=MIN_CLEARANCE, min_frames=cfg.min_frames,
-                                max_frames=cfg.max_frames, mean_frames=cfg.mean_frames)
+                                max_frames=cfg.max_frames, mean_frames=cfg.mean_frames,
+                                placement=getattr(cfg, "placement", "crossing"))
 
 
-def _occluder_poses(rng, poses, size, occ_size, parked: bool):
+def _ego_blocker(ego_x, slope_x: float = 0.0):
+    """The ego car as a ``(poses (T, 4), size)`` blocker in the first frame's sensor frame
+    (None without ego motion data: the crossing placement)."""
+    from seqshape.sim.traffic import EGO_SIZE
+
+    if ego_x is None:
+        return None
+    poses = np.zeros((len(ego_x), 4))
+    poses[:, 0], poses[:, 2] = ego_x, slope_x * ego_x
+    return poses, np.array([*EGO_SIZE, 1.5])
+
+
+def _occluder_poses(rng, poses, size, occ_size, parked: bool, ego_x=None):
     """Candidate occluder poses ``(T, 4)``: a neighbour lane / parking slot or a free track."""
     from seqshape.sim.trajectories import sample_trajectory
 
@@ -139,14 +152,21 @@ def _occluder_poses(rng, poses, size, occ_size, parked: bool):
         out[:, 0] += c * lon - s * lat
         out[:, 1] += s * lon + c * lat
         return out
-    tr = sample_trajectory(rng, n_frames=len(poses), length=occ_size[0], width=occ_size[1],
-                           rate_hz=sensor.rate_hz, min_distance=cfg.min_distance,
-                           max_distance=cfg.max_distance, min_clearance=MIN_CLEARANCE)
+    if ego_x is None:
+        tr = sample_trajectory(rng, n_frames=len(poses), length=occ_size[0], width=occ_size[1],
+                               rate_hz=sensor.rate_hz, min_distance=cfg.min_distance,
+                               max_distance=cfg.max_distance, min_clearance=MIN_CLEARANCE)
+    else:  # traffic: another road user seen from the same moving ego
+        tr = sample_trajectory(rng, n_frames=len(poses), length=occ_size[0], width=occ_size[1],
+                               rate_hz=sensor.rate_hz, min_distance=cfg.min_distance,
+                               max_distance=cfg.max_distance, min_clearance=MIN_CLEARANCE,
+                               placement="traffic", ego_x=ego_x)
     return tr.poses(0.0)
 
 
-def _occluders(rng, v: int, poses, size, parked: bool):
-    """Up to ``max_occluders`` other vehicles of the same split that never collide."""
+def _occluders(rng, v: int, poses, size, parked: bool, ego_x=None):
+    """Up to ``max_occluders`` other vehicles of the same split that never collide (nor touch
+    the ego car when ``ego_x`` is given: the traffic placement)."""
     from seqshape.sim.trajectories import footprint_distance, footprints_overlap
 
     cfg, sensor, splits = _STATE["payload"].config, _STATE["sensor"], _STATE["payload"].splits
@@ -159,11 +179,13 @@ def _occluders(rng, v: int, poses, size, parked: bool):
         mesh = _mesh(u)
         occ_size = mesh.extents
         for _attempt in range(8):
-            cand = _occluder_poses(rng, poses, size, occ_size, parked)
+            cand = _occluder_poses(rng, poses, size, occ_size, parked, ego_x)
             cand[:, 2] = _ground_z(mesh, sensor)
             clear = footprint_distance(cand[:, 0], cand[:, 1], cand[:, 3], occ_size[0],
                                        occ_size[1]).min() >= MIN_CLEARANCE
             others = [(poses, size)] + [(p, m.extents) for m, p in placed]
+            if ego_x is not None:  # the ego car, in each frame's sensor frame
+                others.append((np.zeros_like(poses), _ego_blocker(ego_x)[1]))
             if clear and not any(footprints_overlap(p, s, cand, occ_size).any()
                                  for p, s in others):
                 placed.append((mesh, cand))
@@ -187,14 +209,25 @@ def make_track(i: int) -> Track:
     size = np.asarray(mesh.extents, dtype=np.float64)
     traj = _trajectory(i, rng, size)
     poses = traj.poses(_ground_z(mesh, sensor))
-    occ, occ_ids = _occluders(rng, v, poses, size, traj.manoeuvre == "parked")
+    occ, occ_ids = _occluders(rng, v, poses, size, traj.manoeuvre == "parked", traj.ego_x)
     points = scan_track(mesh, poses, sensor, rng, occ, cfg.ground)
     meta = {"mesh_id": vid, "kind": kind, "source": source, "sensor": sensor.name,
             "split": payload.splits[v], "generator": "seqshape.sim.generate",
             "generator_version": _generator_version(), "preset": cfg.name, "seed": cfg.seed,
             "track_index": i, "manoeuvre": traj.manoeuvre, "trajectory_source": traj.source,
-            "ground": cfg.ground, "noise": cfg.noise, "occluders": occ_ids}
+            "ground": cfg.ground, "noise": cfg.noise, "occluders": occ_ids,
+            **_traffic_meta(traj, 0.0)}
     return Track(plan.track_id(i), points, poses, _complete(v), size, traj.t, meta)
+
+
+def _traffic_meta(traj, slope_x: float) -> dict:
+    """``placement``, ``situation`` and ``ego_poses`` (per frame the (4, 4) sensor frame ->
+    first frame's sensor frame, as `seqshape.data.extract` writes it) of a traffic track;
+    nothing for the crossing placement (older presets' meta unchanged)."""
+    if traj.ego_x is None:
+        return {}
+    return {"placement": "traffic", "situation": traj.situation,
+            "ego_poses": traj.ego_poses(slope_x).tolist()}
 
 
 def make_real_track(i: int) -> Track:
@@ -218,7 +251,7 @@ def make_real_track(i: int) -> Track:
     traj = _trajectory(i, rng, size)
     poses = traj.poses(0.0)
     poses[:, 2] = real.ground_height(n, d, poses[:, 0], poses[:, 1]) - mesh.bounds[0, 2]
-    occ, occ_ids = _occluders(rng, v, poses, size, traj.manoeuvre == "parked")
+    occ, occ_ids = _occluders(rng, v, poses, size, traj.manoeuvre == "parked", traj.ego_x)
     index = {u[0]: k for k, u in enumerate(payload.vehicles)}
     labels = payload.face_labels or [None] * len(payload.vehicles)
     paint = real.sample_paint(srng, rc)
@@ -227,11 +260,8 @@ def make_real_track(i: int) -> Track:
         p[:, 2] = real.ground_height(n, d, p[:, 0], p[:, 1]) - m.bounds[0, 2]
         objects.append(real.vehicle_object(m, p, labels[index[oid]], real.sample_paint(srng, rc),
                                            rc, 2))
-    blockers = [(poses, size)] + [(p, m.extents) for m, p in occ]
-    clutter = real.sample_clutter(srng, poses, size, blockers, n, d, rc)
-    extra = real.clutter_object(clutter)
-    if extra is not None:
-        objects.append(extra)
+    clutter, extra = _static_clutter(srng, poses, size, occ, traj.ego_x, sx, (n, d), rc)
+    objects += extra
     scene = real.Scene(objects, n, d, float(srng.uniform(*rc.ground_reflectivity)))
     rot = mount_rotation(pitch, roll)
     drop = 0.5 + rc.max_slope * (size[0] / 2 + rc.context) * 2
@@ -252,8 +282,41 @@ def make_real_track(i: int) -> Track:
                      "ground_reflectivity": scene.ground_rho},
             "jitter": asdict(rc.jitter), "crop": rc.crop.to_dict(),
             "crop_boxes": np.round(boxes, 4).tolist(),
-            "sources": {name: counts[:, k].tolist() for k, name in enumerate(real.SOURCES)}}
+            "sources": {name: counts[:, k].tolist() for k, name in enumerate(real.SOURCES)},
+            **_traffic_meta(traj, sx)}
     return Track(plan.track_id(i), points, poses, _complete(v), size, traj.t, meta)
+
+
+def _static_clutter(srng, poses, size, occ, ego_x, slope_x: float, plane, rc):
+    """The clutter of a real track: ``(real.sample_clutter's list, scene objects (0 or 1))``.
+
+    Clutter stands still in the world: with ego motion (``ego_x``) it is sampled in the first
+    frame's sensor frame, around the vehicles' poses moved there (the ego car's swept footprint
+    is a blocker too), and moves by ``-ego`` in each frame's sensor frame; the ground plane is
+    the same in every frame (the ego drives along it). Without ``ego_x``: the sensor frame.
+    """
+    from seqshape.sim import real
+
+    blockers = [(poses, size)] + [(p, m.extents) for m, p in occ]
+    ego = _ego_blocker(ego_x, slope_x)
+    shift = None
+    if ego is not None:
+        shift = ego[0][:, :3]  # (T, 3) ego position in the first frame's sensor frame
+        blockers = [(_moved(p, shift), s) for p, s in blockers] + [ego]
+        poses = _moved(poses, shift)
+    clutter = real.sample_clutter(srng, poses, size, blockers, *plane, rc)
+    obj = real.clutter_object(clutter)
+    if obj is None:
+        return clutter, []
+    if shift is not None and np.ptp(shift[:, 0]) > 0:
+        obj.poses = np.concatenate([-shift, np.zeros((len(shift), 1))], 1)  # (T, 4)
+    return clutter, [obj]
+
+
+def _moved(poses, shift):
+    out = np.array(poses, dtype=np.float64, copy=True)
+    out[:, :3] += shift
+    return out
 
 
 def _vehicle_class(kind: str) -> str | None:

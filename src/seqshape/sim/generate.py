@@ -86,6 +86,11 @@ class GenerateConfig:
     """The real path (seqshape.sim.real): sensor mix and mount, materials, ground and clutter
     returns, mixed edge returns, tracker-box crop. None: the original scan (``sensor``,
     ``noise``, ``ground`` as documented above)."""
+    placement: str = "crossing"
+    """Where sampled trajectories go (seqshape.sim.trajectories.PLACEMENTS): "crossing" (every
+    track crosses the line of sight of a static sensor) or "traffic" (seqshape.sim.traffic:
+    lanes through the sensor, a moving ego, same-direction, oncoming, crossing and parked
+    vehicles). Ignored with ``trajectories``."""
 
     def __post_init__(self):
         if isinstance(self.real, dict):  # from generate.json
@@ -105,6 +110,10 @@ class GenerateConfig:
             raise ConfigError("need 0 < min_distance < max_distance")
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
+        from seqshape.sim.trajectories import PLACEMENTS
+
+        if self.placement not in PLACEMENTS:
+            raise ConfigError(f"placement must be one of {PLACEMENTS}, got {self.placement!r}")
         if self.library not in LIBRARIES:
             raise ConfigError(f"library must be one of {LIBRARIES}, got {self.library!r}")
         from seqshape.sim.sensors import get_sensor
@@ -115,7 +124,7 @@ class GenerateConfig:
 LIBRARIES = ("procedural", "fleet")
 #: fields added after the first datasets: left out of generate.json / the manifest while they
 #: hold their default, so that the older presets' outputs stay byte-identical
-_LATE_FIELDS = {"library": "procedural", "real": None}
+_LATE_FIELDS = {"library": "procedural", "real": None, "placement": "crossing"}
 
 PRESETS: dict[str, GenerateConfig] = {
     # a handful of short tracks, generated in seconds
@@ -127,9 +136,10 @@ PRESETS: dict[str, GenerateConfig] = {
     "realistic": GenerateConfig("realistic", noise=True, ground=True, max_occluders=4),
     # train on what inference sees: the fleet library, a sensor mix (VLP-16, VLP-32C, HDL-64E,
     # OS1-128) at 1.5-2.2 m with +-1.5 deg pitch / roll, glass, dark surfaces, edge mixing,
-    # ground and clutter returns, occluders, and the shared crop with a tracker-like box
+    # ground and clutter returns, occluders, and the shared crop with a tracker-like box;
+    # traffic seen along the line of sight from a moving ego (seqshape.sim.traffic)
     "real": GenerateConfig("real", noise=True, ground=True, max_occluders=4, library="fleet",
-                           real=RealConfig()),
+                           real=RealConfig(), placement="traffic"),
 }
 
 

@@ -11,12 +11,23 @@ steering is limited to 35 degrees. The pose reported is that of the bounding-box
 wheelbase ahead of the rear axle, which has the small side-slip of a real car in a turn.
 
 Manoeuvres: ``straight`` (gently curved road), ``turn`` (60-100 deg at an intersection),
-``lane_change``, ``stop_and_go``, ``u_turn`` and ``parked``. A sampled track is placed so that
-the vehicle passes the sensor: at a random frame it is at the sampled closest distance (3 to
-0.75 * max_distance m, log-uniform) moving across the line of sight with a varied heading; no
-frame brings its footprint closer than ``min_clearance`` to the sensor or its centre closer
-than ``min_distance``, and speeds are scaled down so that the track stays within
-``max_distance``.
+``lane_change``, ``stop_and_go``, ``u_turn`` and ``parked``. Two placements:
+
+* ``"crossing"`` (the paper, realistic presets): the vehicle passes a static sensor: at a random
+  frame it is at the sampled closest distance (3 to 0.75 * max_distance m, log-uniform) moving
+  across the line of sight with a varied heading;
+* ``"traffic"`` (the real preset, :func:`sample_traffic`): a straight road through the sensor,
+  the ego on one of its lanes (3.5 m wide) driving along +x at a sampled speed (0: stopped);
+  the target drives in the ego's direction on any of its lanes, oncoming on the opposite
+  lanes, on a cross road at an intersection, or is parked at the kerb. The track is expressed
+  in each frame's sensor frame (the ego's motion is taken out) and ``Trajectory.ego_x`` holds
+  how far the ego has driven; no footprint overlaps the ego's (``EGO_SIZE``).
+
+In both, no frame brings the target's footprint closer than ``min_clearance`` to the sensor or
+its centre closer than ``min_distance``, and speeds are scaled down so that the track stays
+within ``max_distance``. Angles: yaw counter-clockwise from +x; the *view angle*
+(:func:`view_angle`) is the angle between the vehicle's heading and the direction from its
+centre to the sensor: 0 deg the sensor sees the nose, 180 deg the tail, 90 deg a side.
 """
 
 from __future__ import annotations
@@ -33,6 +44,7 @@ from seqshape.errors import ConfigError, DataError
 
 MANOEUVRES = {"straight": 0.32, "turn": 0.18, "lane_change": 0.15, "stop_and_go": 0.12,
               "u_turn": 0.05, "parked": 0.18}
+PLACEMENTS = ("crossing", "traffic")
 MAX_STEER = math.radians(35.0)
 _DS = 0.1  # arc-length step (m) of the path integration
 
@@ -44,6 +56,9 @@ class Trajectory:
     ``x, y`` position of the vehicle's bounding-box centre (m), ``yaw`` its heading (rad,
     wrapped to [-pi, pi)), ``t`` time (s, strictly increasing). ``manoeuvre`` names how it was
     made ("straight", ..., or "csv"), ``source`` the CSV file when read from one.
+    ``ego_x`` ``(T,)`` (traffic placement only, else None): how far the ego has driven along
+    its own +x axis since the first frame (m); ``x, y, yaw`` are then in each frame's sensor
+    frame. ``situation`` names the traffic situation ("" for the crossing placement).
     """
 
     t: np.ndarray
@@ -52,12 +67,18 @@ class Trajectory:
     yaw: np.ndarray
     manoeuvre: str = ""
     source: str = ""
+    ego_x: np.ndarray | None = None
+    situation: str = ""
 
     def __post_init__(self):
         for k in ("t", "x", "y", "yaw"):
             setattr(self, k, np.asarray(getattr(self, k), dtype=np.float64).reshape(-1))
         if not len(self.t) == len(self.x) == len(self.y) == len(self.yaw):
             raise ValueError("trajectory arrays t, x, y, yaw differ in length")
+        if self.ego_x is not None:
+            self.ego_x = np.asarray(self.ego_x, dtype=np.float64).reshape(-1)
+            if len(self.ego_x) != len(self.t):
+                raise ValueError("trajectory ego_x differs in length from t")
 
     def __len__(self) -> int:
         return len(self.t)
@@ -65,6 +86,19 @@ class Trajectory:
     def poses(self, z: float) -> np.ndarray:
         """``(T, 4)`` poses (x, y, z, yaw) with a constant height ``z``."""
         return np.stack([self.x, self.y, np.full(len(self), float(z)), self.yaw], 1)
+
+    def ego_poses(self, slope_x: float = 0.0) -> np.ndarray:
+        """``(T, 4, 4)`` ego poses: sensor frame of frame t -> sensor frame of the first frame.
+
+        The ego drives straight along +x by ``ego_x`` (identities when ``ego_x`` is None); on a
+        ground of longitudinal slope ``slope_x`` (rise / run in the sensor frame) its sensor
+        rises by ``slope_x * ego_x``, so the ground plane is the same in every frame.
+        """
+        out = np.tile(np.eye(4), (len(self), 1, 1))
+        if self.ego_x is not None:
+            out[:, 0, 3] = self.ego_x
+            out[:, 2, 3] = slope_x * self.ego_x
+        return out
 
 
 # --------------------------------------------------------------------------- track lengths
@@ -133,9 +167,11 @@ def _trapezoid(s, s0, length, ramp, value):
     return value * np.minimum(up, down)
 
 
-def _curvature(rng, manoeuvre: str, s: np.ndarray, total: float) -> np.ndarray:
-    """Path curvature (1/m) of the rear axle along arc length ``s`` for a manoeuvre."""
-    kappa = rng.uniform(0, 0.004) * np.sin(2 * np.pi * s / rng.uniform(80, 300)
+def _curvature(rng, manoeuvre: str, s: np.ndarray, total: float,
+               road_curvature: float = 0.004) -> np.ndarray:
+    """Path curvature (1/m) of the rear axle along arc length ``s`` for a manoeuvre; the road
+    itself curves with an amplitude uniform in ``[0, road_curvature]``."""
+    kappa = rng.uniform(0, road_curvature) * np.sin(2 * np.pi * s / rng.uniform(80, 300)
                                            + rng.uniform(0, 2 * np.pi))
     sign = rng.choice([-1.0, 1.0])
     if manoeuvre in ("turn", "u_turn"):
@@ -155,15 +191,17 @@ def _curvature(rng, manoeuvre: str, s: np.ndarray, total: float) -> np.ndarray:
     return kappa
 
 
-def bicycle_path(rng, manoeuvre: str, t: np.ndarray, wheelbase: float, speed_scale=1.0):
-    """Integrate the bicycle model from the origin heading +x: centre ``x, y, yaw`` at ``t``."""
+def bicycle_path(rng, manoeuvre: str, t: np.ndarray, wheelbase: float, speed_scale=1.0,
+                 road_curvature: float = 0.004):
+    """Integrate the bicycle model from the origin heading +x: centre ``x, y, yaw`` at ``t``
+    (``road_curvature``: see :func:`_curvature`)."""
     v = _speed_profile(rng, manoeuvre, t) * speed_scale
     dt = np.diff(t, prepend=t[0])
     s_t = np.cumsum(0.5 * (v + np.concatenate([v[:1], v[:-1]])) * dt)  # trapezoidal arc length
     total = float(s_t[-1])
     s = np.arange(0.0, total + 2 * _DS, _DS)
-    kappa = np.clip(_curvature(rng, manoeuvre, s, total), -math.tan(MAX_STEER) / wheelbase,
-                    math.tan(MAX_STEER) / wheelbase)
+    limit = math.tan(MAX_STEER) / wheelbase
+    kappa = np.clip(_curvature(rng, manoeuvre, s, total, road_curvature), -limit, limit)
     psi = np.concatenate([[0.0], np.cumsum(0.5 * (kappa[1:] + kappa[:-1]) * _DS)])
     xr = np.concatenate([[0.0], np.cumsum(0.5 * (np.cos(psi[1:]) + np.cos(psi[:-1])) * _DS)])
     yr = np.concatenate([[0.0], np.cumsum(0.5 * (np.sin(psi[1:]) + np.sin(psi[:-1])) * _DS)])
@@ -198,12 +236,21 @@ def sample_trajectory(rng: np.random.Generator, n_frames: int | None = None,
                       rate_hz: float = 10.0, min_distance: float = 3.0,
                       max_distance: float = 60.0, min_clearance: float = 1.5,
                       min_frames: int = 10, max_frames: int = 200,
-                      mean_frames: float = 70.0) -> Trajectory:
-    """A random track of a ``length x width`` vehicle passing the sensor (see module doc).
+                      mean_frames: float = 70.0, placement: str = "crossing",
+                      ego_x: np.ndarray | None = None) -> Trajectory:
+    """A random track of a ``length x width`` vehicle near the sensor (see module doc).
 
     ``n_frames`` / ``manoeuvre`` are drawn when None (lengths from
-    :func:`sample_track_length`, manoeuvres with the weights of ``MANOEUVRES``).
+    :func:`sample_track_length`, manoeuvres with the weights of ``MANOEUVRES``, or of
+    ``seqshape.sim.traffic.TRAFFIC_MANOEUVRES`` for the traffic placement). ``placement``:
+    ``"crossing"`` or ``"traffic"`` (:func:`seqshape.sim.traffic.sample_traffic`, which also
+    takes a given ego motion ``ego_x`` ``(n_frames,)``; ignored by the crossing placement).
     """
+    if placement not in PLACEMENTS:
+        raise ConfigError(f"unknown placement {placement!r}; choose from {list(PLACEMENTS)}")
+    if placement == "traffic":
+        return _traffic(rng, n_frames, manoeuvre, length, width, rate_hz, min_distance,
+                        max_distance, min_clearance, min_frames, max_frames, mean_frames, ego_x)
     if manoeuvre is None:
         names = list(MANOEUVRES)
         manoeuvre = names[rng.choice(len(names), p=np.array(list(MANOEUVRES.values())))]
@@ -244,6 +291,29 @@ def sample_trajectory(rng: np.random.Generator, n_frames: int | None = None,
             break
         scale *= 0.9 * max(max_distance - d, 1.0) / max(reach - d, 1.0)
     return Trajectory(t, px, py, (pyaw + np.pi) % (2 * np.pi) - np.pi, manoeuvre)
+
+
+def _traffic(rng, n_frames, manoeuvre, length, width, rate_hz, min_distance, max_distance,
+             min_clearance, min_frames, max_frames, mean_frames, ego_x) -> Trajectory:
+    from seqshape.sim.traffic import sample_traffic
+
+    if not 0 < min_distance < max_distance:
+        raise ConfigError(f"need 0 < min_distance ({min_distance}) < max_distance "
+                          f"({max_distance})")
+    if n_frames is None:
+        n_frames = len(ego_x) if ego_x is not None else sample_track_length(
+            rng, min_frames, max_frames, mean_frames)
+    t = np.arange(int(n_frames)) / rate_hz
+    return sample_traffic(rng, t, manoeuvre, length, width, min_distance, max_distance,
+                          min_clearance, ego_x)
+
+
+def view_angle(x, y, yaw) -> np.ndarray:
+    """Degrees ``[0, 180]`` between a vehicle's heading ``yaw`` and the direction from its
+    centre ``(x, y)`` (sensor frame) to the sensor: 0 the sensor sees the nose, 90 a side,
+    180 the tail. Arrays broadcast."""
+    to_sensor = np.arctan2(-np.asarray(y, float), -np.asarray(x, float))
+    return np.degrees(np.abs((to_sensor - np.asarray(yaw, float) + np.pi) % (2 * np.pi) - np.pi))
 
 
 def footprints_overlap(poses_a, size_a, poses_b, size_b, margin: float = 0.3) -> np.ndarray:
