@@ -227,8 +227,8 @@ def print_tables(summary: dict[str, dict]) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=Path("/work/data/paper"),
-                    help="track dataset folder (default /work/data/paper)")
+    ap.add_argument("--data", type=Path, required=True,
+                    help="track dataset folder (e.g. one made by seqshape generate --preset paper)")
     ap.add_argument("--split", default="val", help="split to evaluate (default val)")
     ap.add_argument("--checkpoint", default="pretrained", help="sequential model")
     ap.add_argument("--baseline", default="pretrained", help="per-frame baseline model")
