@@ -56,7 +56,7 @@ import torch
 from seqshape.data.windows import points_length, resample_frame
 from seqshape.errors import ConfigError
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
-from seqshape.model.estimator import CLASS_MIN_LENGTH, Estimate
+from seqshape.model.estimator import Estimate, _class_floor, _length_hint
 from seqshape.model.heading import (
     HeadingConfig,
     HeadingFilter,
@@ -203,7 +203,7 @@ def _bidirectional(model, frames: list[np.ndarray], first: dict, size, cls,
     f_pose = first["pose"]
     use_b = w_b > w_f
     pose = np.where(use_b[:, None], b_pose, f_pose).copy()
-    agree = np.abs(_wrap(b_pose[:, 3] - f_pose[:, 3])) <= math.pi / 2
+    agree = np.abs(wrap_angle(b_pose[:, 3] - f_pose[:, 3])) <= math.pi / 2
     wf = w_f / np.maximum(w_f + w_b, 1e-9)
     pose[:, :3] = wf[:, None] * f_pose[:, :3] + (1.0 - wf[:, None]) * b_pose[:, :3]
     mean_yaw = np.arctan2(wf * np.sin(f_pose[:, 3]) + (1 - wf) * np.sin(b_pose[:, 3]),
@@ -302,17 +302,9 @@ def _scales(model, frames: list[np.ndarray], size, cls) -> np.ndarray | None:
     mcfg = model.cfg
     if mcfg.scale_norm == "none":
         return None
-    hint = None
-    if size is not None:
-        arr = np.asarray(size, dtype=np.float64).reshape(-1)
-        if arr.size == 0 or not np.isfinite(arr[0]) or arr[0] <= 0:
-            raise ConfigError(f"size must be a positive length or a box (l, w, h), got "
-                              f"{size!r}")
-        hint = float(arr[0])
-    if cls and str(cls) not in CLASS_MIN_LENGTH:
-        raise ConfigError(f"unknown vehicle class {cls!r}; expected one of "
-                          f"{sorted(CLASS_MIN_LENGTH)} or None")
-    floor = CLASS_MIN_LENGTH[str(cls)] if cls else 0.0
+    # the same hint rules and errors as Estimator.step, for one track
+    hint = _length_hint([size], 0)
+    floor = _class_floor([cls], 0)
     length, out = 0.0, []
     for f in frames:
         if len(f):
@@ -431,7 +423,7 @@ def consistent_flips(poses: np.ndarray, ego_poses: Sequence | None, has_points: 
     if cfg.motion:
         motion = _window_motion(centre, evidence, n, cfg)
     moving = np.isfinite(motion)
-    aligned = np.where(moving & (np.abs(_wrap(yaw - motion)) > math.pi / 2), yaw + math.pi, yaw)
+    aligned = np.where(moving & (np.abs(wrap_angle(yaw - motion)) > math.pi / 2), yaw + math.pi, yaw)
     weight = np.where(moving, cfg.motion_weight, 1.0)[evidence]
     unit = np.stack([np.cos(aligned[evidence]), np.sin(aligned[evidence])], axis=1)
     for t in np.flatnonzero(known):
@@ -445,10 +437,6 @@ def consistent_flips(poses: np.ndarray, ego_poses: Sequence | None, has_points: 
             target = math.atan2(vote[1], vote[0])
         flips[t] = abs(wrap_angle(yaw[t] - target)) > math.pi / 2
     return flips
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def _fixed_frame(poses: np.ndarray, ego_poses, static: bool):
