@@ -3,6 +3,8 @@
 The scripts import this module as ``from _bench import ...``; that works because Python puts the
 script's own folder (``benchmarks/``) first on ``sys.path`` when a script is run as
 ``python benchmarks/bm_x.py``. See ``benchmarks/README.md`` for the rules every benchmark follows.
+Synthetic inputs shared with the tests (box clouds, reference sizes) come from
+:mod:`seqshape.testing`, so a benchmark times the clouds a test checks.
 """
 
 from __future__ import annotations

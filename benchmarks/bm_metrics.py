@@ -12,26 +12,15 @@ import numpy as np
 from _bench import bench_parser, print_table, time_it
 
 from seqshape.evaluation.metrics import chamfer_distance, earth_movers_distance
-
-
-def box_surface(n: int, seed: int, size=(4.5, 1.8, 1.5)) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    size = np.asarray(size, dtype=np.float64)
-    ln, w, h = size
-    areas = np.array([w * h, w * h, ln * h, ln * h, ln * w, ln * w])
-    face = rng.choice(6, n, p=areas / areas.sum())
-    u = rng.uniform(-0.5, 0.5, (n, 3)) * size
-    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3, strict=True)):
-        u[face == i, axis] = sign * size[axis] / 2
-    return u.astype(np.float32)
+from seqshape.testing import box_surface
 
 
 def main() -> None:
     args = bench_parser(__doc__, repeats=5).parse_args()
     rows = []
     for n in (1024, 2048):
-        a = box_surface(n, args.seed + 1)
-        b = box_surface(n, args.seed + 2) + np.float32(0.05)  # a slightly offset second sampling
+        a = box_surface(n, args.seed + 1, dtype=np.float32)
+        b = box_surface(n, args.seed + 2, dtype=np.float32) + np.float32(0.05)  # a slightly offset second sampling
         for name, fn in (("chamfer", lambda a=a, b=b: chamfer_distance(a, b)),
                          ("emd", lambda a=a, b=b: earth_movers_distance(a, b))):
             t = time_it(fn, args.repeats)

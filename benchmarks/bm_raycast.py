@@ -31,8 +31,18 @@ processes into a temporary folder; tracks/s, frames/s and the median points per 
 
 from __future__ import annotations
 
+import tempfile
+import time
+
 import numpy as np
 from _bench import bench_parser, print_table, time_it
+
+from seqshape.data import TrackDataset
+from seqshape.geometry import pose_to_matrix
+from seqshape.sim.generate import generate_dataset, preset_config
+from seqshape.sim.raycast import full_sweep, mesh_raycaster, scan_track, scan_vehicle, track_rays
+from seqshape.sim.sensors import get_sensor
+from seqshape.vehicles import KINDS, procedural_vehicle
 
 DISTANCES = (5.0, 10.0, 20.0, 40.0)
 TRACK_FRAMES = 70
@@ -50,16 +60,8 @@ def _track(dist: float, z: float) -> np.ndarray:
 
 
 def _case(mesh, dist: float, cfg, repeats: int, seed: int) -> dict:
+    # embreex is installed on x86_64 only (pyproject): the bare reference needs it
     from trimesh.ray.ray_pyembree import RayMeshIntersector
-
-    from seqshape.geometry import pose_to_matrix
-    from seqshape.sim.raycast import (
-        full_sweep,
-        mesh_raycaster,
-        scan_track,
-        scan_vehicle,
-        track_rays,
-    )
 
     z = -cfg.height - mesh.bounds[0, 2]
     pose = np.array([dist * np.cos(0.6), dist * np.sin(0.6), z, 1.1])
@@ -85,9 +87,6 @@ def _case(mesh, dist: float, cfg, repeats: int, seed: int) -> dict:
 
 
 def main() -> None:
-    from seqshape.sim.sensors import get_sensor
-    from seqshape.vehicles import KINDS, procedural_vehicle
-
     ap = bench_parser(__doc__, repeats=7)
     ap.add_argument("--sensor", default="vlp16")
     ap.add_argument("--generation", action="store_true",
@@ -108,12 +107,6 @@ def main() -> None:
 
 
 def _generation(args) -> None:
-    import tempfile
-    import time
-
-    from seqshape.data import TrackDataset
-    from seqshape.sim.generate import generate_dataset, preset_config
-
     rows = []
     for name in ("paper", "real"):
         cfg = preset_config(name, n_vehicles=args.vehicles, n_val_vehicles=1,

@@ -21,20 +21,20 @@ import tempfile
 import numpy as np
 from _bench import bench_parser, print_table, time_it
 
+from seqshape._io import atomic_write_bytes
+from seqshape.camera import kitti_default_calib
+from seqshape.data.kitti import image_path, velodyne_path, write_velodyne
+from seqshape.sim.render import camera_rays, render_camera, render_lidar
+from seqshape.sim.scene_writer import _png, _rng, frame_truth, make_scene, scene_config
+from seqshape.sim.scenes import ground_material
+from seqshape.sim.sensors import get_sensor
+
 
 def main() -> None:
     ap = bench_parser(__doc__, repeats=3)
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--sensor", default="hdl64")
     args = ap.parse_args()
-
-    from seqshape._io import atomic_write_bytes
-    from seqshape.camera import kitti_default_calib
-    from seqshape.data.kitti import image_path, velodyne_path, write_velodyne
-    from seqshape.sim.render import camera_rays, render_camera, render_lidar
-    from seqshape.sim.scene_writer import _png, _rng, frame_truth, make_scene, scene_config
-    from seqshape.sim.scenes import ground_material
-    from seqshape.sim.sensors import get_sensor
 
     cfg = scene_config("kitti-like", sensor=args.sensor)
     scene = make_scene(cfg, args.seed, 0)

@@ -22,6 +22,7 @@ from _bench import bench_parser, print_table, time_it
 from seqshape.data import Track, write_dataset
 from seqshape.data.windows import WindowDataset
 from seqshape.geometry import canonical_to_sensor
+from seqshape.testing import box_shell
 from seqshape.train import Trainer, get_train_config
 
 
@@ -31,9 +32,7 @@ def box_dataset(path: Path, n: int = 24, frames: int = 40, seed: int = 0):
     tracks = []
     for i in range(n):
         size = np.array([rng.uniform(3.5, 5), rng.uniform(1.6, 2), rng.uniform(1.3, 1.8)])
-        c = rng.uniform(-0.5, 0.5, size=(2048, 3)) * size
-        face = rng.integers(0, 3, 2048)
-        c[np.arange(2048), face] = rng.choice([-1.0, 1.0], 2048) * size[face] / 2
+        c = box_shell(2048, rng, size)
         yaw, x0, y0 = rng.uniform(-np.pi, np.pi), rng.uniform(5, 25), rng.uniform(-8, 8)
         t = np.arange(frames)
         poses = np.stack([x0 + 0.5 * t * np.cos(yaw), y0 + 0.5 * t * np.sin(yaw),

@@ -7,21 +7,14 @@ import numpy as np
 
 from seqshape.data import Track, write_dataset
 from seqshape.geometry import canonical_to_sensor
-
-
-def box_surface(size: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` points uniformly on the faces of a centred box of ``size`` (l, w, h), (n, 3)."""
-    pts = rng.uniform(-0.5, 0.5, size=(n, 3)) * size
-    face = rng.integers(0, 3, n)
-    pts[np.arange(n), face] = rng.choice([-1.0, 1.0], n) * size[face] / 2
-    return pts.astype(np.float32)
+from seqshape.testing import box_shell
 
 
 def box_track(track_id: str, split: str, rng: np.random.Generator, frames: int = 12,
               empty_frame: int | None = None) -> Track:
     """One box track moving along a line; frame ``empty_frame`` has no points."""
     size = np.array([rng.uniform(3.5, 5.0), rng.uniform(1.6, 2.0), rng.uniform(1.3, 1.8)])
-    complete = box_surface(size, 1024, rng)
+    complete = box_shell(1024, rng, size, dtype=np.float32)
     x0, y0, yaw = rng.uniform(5, 20), rng.uniform(-8, 8), rng.uniform(-np.pi, np.pi)
     v = rng.uniform(0.0, 1.0)
     t = np.arange(frames)

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from _shapes import box_shell  # noqa: I001
 from scipy.spatial import cKDTree
 
 from seqshape.amodal.accumulate import (
@@ -14,6 +13,7 @@ from seqshape.amodal.accumulate import (
 )
 from seqshape.data.track import Track
 from seqshape.geometry import canonical_to_sensor
+from seqshape.testing import box_shell
 
 SIZE = np.array([4.0, 1.8, 1.5])
 

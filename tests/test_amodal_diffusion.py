@@ -1,7 +1,6 @@
 """Label diffusion and ground removal on hand-built point sets; frame association."""
 
 import numpy as np
-from _shapes import box_shell  # noqa: I001
 
 from seqshape.amodal.association import Detection, associate
 from seqshape.amodal.diffusion import (
@@ -12,6 +11,7 @@ from seqshape.amodal.diffusion import (
     grow_instances,
     largest_cluster,
 )
+from seqshape.testing import box_shell
 
 
 def blob(centre, n, rng, spread=(1.0, 0.5, 0.4)):

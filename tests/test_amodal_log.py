@@ -6,18 +6,18 @@ import json
 import cv2
 import numpy as np
 import pytest
-from _shapes import box_surface  # noqa: I001
 
 from seqshape.amodal.association import instance_masks_by_frame
-from seqshape.amodal.kins import coco_annotation, mask_to_polygons, read_kins, segm_to_mask
 from seqshape.amodal.labeler import LabelConfig, label_log, label_log_cameras, write_labels
 from seqshape.camera import PinholeCamera, kitti_default_calib, write_calib
+from seqshape.data.kins import coco_annotation, mask_to_polygons, read_kins, segm_to_mask
 from seqshape.data.kitti import KittiLabel, pose_to_label_fields, write_velodyne
 from seqshape.data.kitti import write_labels as write_kitti
 from seqshape.data.sequence import Box3D, DrivingLog
 from seqshape.errors import ConfigError
 from seqshape.geometry import box_corners, canonical_to_sensor
 from seqshape.scripts.label import add_arguments, open_args_log
+from seqshape.testing import box_surface
 
 GROUND = -1.7
 W, H = 320, 200

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from seqshape.amodal.smooth import axial_mean, smooth_track_poses
 from seqshape.geometry import compose, invert, wrap_angle
+from seqshape.model.smooth import axial_mean, smooth_track_poses
 
 
 def _ego(t):

@@ -1,4 +1,3 @@
-import doctest
 from pathlib import Path
 
 import numpy as np
@@ -138,13 +137,6 @@ def test_standard_axes_and_in_image():
     np.testing.assert_allclose(d[2], [0, -1, 0], atol=0.02)  # up -> -y
     uv, depth = project_points(np.array([[10.0, 0, 0], [-10.0, 0, 0], [10, 40, 0]]), calib)
     assert in_image(uv, depth, calib).tolist() == [True, False, False]
-
-
-def test_docstring_examples():
-    import seqshape.camera as mod
-
-    result = doctest.testmod(mod)
-    assert result.attempted > 0 and result.failed == 0
 
 
 def test_radial_distortion_round_trip_and_no_fold_back():

@@ -137,6 +137,59 @@ def test_from_pretrained_missing_is_clear(tmp_path, monkeypatch):
     assert Estimator.from_pretrained("sequential").recurrent
 
 
+def _state_equal(a: Estimator, b: Estimator) -> bool:
+    sa, sb = a.model.state_dict(), b.model.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_load_resolves_names_and_paths(tmp_path, monkeypatch):
+    monkeypatch.setattr(estimator_module, "PRETRAINED_DIR", tmp_path)
+    save_payload(tmp_path / "sequential.pt", model_payload(_model(), {}, {}))
+    save_payload(tmp_path / "baseline.pt", model_payload(_model(False), {}, {}))
+    run = tmp_path / "run"
+    run.mkdir()
+    save_payload(run / "model.pt", model_payload(_model(False), {}, {"cd": 0.5}))
+    assert Estimator.load("sequential").recurrent
+    assert Estimator.load("pretrained").kind == "sequential"
+    base = Estimator.load("pretrained", kind="baseline", threads=1)
+    assert base.kind == "baseline" and _state_equal(base, Estimator.from_pretrained("baseline"))
+    own = Estimator.load(run / "model.pt")
+    assert own.metrics == {"cd": 0.5}
+    assert _state_equal(own, Estimator.from_checkpoint(str(run / "model.pt")))
+    assert Estimator.load(str(run / "model.pt"), kind="baseline").kind == "baseline"
+    with pytest.raises(ConfigError, match="holds a baseline model, not a sequential one"):
+        Estimator.load(run / "model.pt", kind="sequential")
+    with pytest.raises(DataError, match="weights file not found"):
+        Estimator.load(tmp_path / "none.pt")
+    with pytest.raises(ConfigError, match="unknown pretrained model 'big'"):
+        Estimator.load("pretrained", kind="big")
+    with pytest.raises(ConfigError, match="CPU"):
+        Estimator.load("sequential", device="cuda")
+    (tmp_path / "baseline.pt").unlink()
+    with pytest.raises(DataError, match="baseline.pt: shipped baseline weights are missing"):
+        Estimator.load("baseline")
+
+
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol")
+def test_load_refuses_pickles(tmp_path):
+    pickled = tmp_path / "pickled.pt"
+    pickled.write_bytes(pickle.dumps(np.random.default_rng))  # code, not weights
+    with pytest.raises(DataError, match="not a readable"):
+        Estimator.load(pickled)
+
+
+def test_resolve_weights_is_shared_with_training(tmp_path, monkeypatch):
+    from seqshape.train.checkpoint import resolve_init
+
+    monkeypatch.setattr(estimator_module, "PRETRAINED_DIR", tmp_path)
+    save_payload(tmp_path / "baseline.pt", model_payload(_model(False), {}, {}))
+    assert resolve_init("pretrained", "baseline") == tmp_path / "baseline.pt"
+    assert estimator_module.resolve_weights("baseline") == tmp_path / "baseline.pt"
+    assert resolve_init(tmp_path / "baseline.pt", "sequential") == tmp_path / "baseline.pt"
+    with pytest.raises(DataError, match="sequential weights are missing"):
+        resolve_init("pretrained", "sequential")
+
+
 # ---------------------------------------------------------------------- issue 15: scale, heading
 SCALED = ModelConfig(**{**TINY.to_dict(), "scale_norm": "length", "shape_frame": "canonical"})
 

@@ -12,15 +12,7 @@ from seqshape.evaluation import evaluate_tracks, metrics_markdown, summarize
 from seqshape.evaluation.metrics import flip_stats
 from seqshape.evaluation.report import DETECTION_LABELS, FLIP_DEG, detection_summary
 from seqshape.geometry import canonical_to_sensor
-
-
-def _box_surface(n: int = 400, size=(4.0, 1.8, 1.5), seed: int = 0) -> np.ndarray:
-    """Points on the faces of a box centred at the origin (canonical frame)."""
-    rng = np.random.default_rng(seed)
-    p = rng.uniform(-0.5, 0.5, (n, 3))
-    axis = rng.integers(0, 3, n)
-    p[np.arange(n), axis] = np.sign(p[np.arange(n), axis]) * 0.5
-    return (p * np.asarray(size)).astype(np.float32)
+from seqshape.testing import box_shell
 
 
 def _track(track_id: str, n_frames: int = 10) -> Track:
@@ -28,7 +20,7 @@ def _track(track_id: str, n_frames: int = 10) -> Track:
     t = np.arange(n_frames, dtype=np.float64)
     poses = np.stack([12.0 + t, np.full_like(t, 3.0), np.full_like(t, -1.2),
                       np.full_like(t, 0.3)], axis=1)
-    complete = _box_surface()
+    complete = box_shell(400, 0, (4.0, 1.8, 1.5), dtype=np.float32)
     points = [canonical_to_sensor(complete[:50], p) for p in poses]
     return Track(track_id, points, poses, complete, np.array([4.0, 1.8, 1.5]), t * 0.1,
                  {"split": "val"})

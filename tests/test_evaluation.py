@@ -7,12 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-from _shapes import box_surface as _box_surface  # noqa: I001
 
 from seqshape.data import Track, TrackDataset, write_dataset
 from seqshape.evaluation.metrics import chamfer_distance, earth_movers_distance
 from seqshape.evaluation.runner import FIELDS, detection_span, evaluate_tracks, predict_track
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+from seqshape.testing import box_surface as _box_surface
 
 SIZE = (4.5, 1.8, 1.5)
 
@@ -268,18 +268,18 @@ def test_demo_end_to_end_with_untrained_models(tmp_path, monkeypatch):
     pytest.importorskip("seqshape.model.estimator")
     pytest.importorskip("seqshape.sim.generate")
     from seqshape.cli import main
-    from seqshape.scripts import demo
+    from seqshape.demo import DemoStep, Section, pipeline
 
     seq = _untrained_checkpoint(tmp_path / "seq.pt", "sequential")
     base = _untrained_checkpoint(tmp_path / "base.pt", "baseline")
     out = tmp_path / "demo"
     extra = []
-    mine = [s for s in demo.STEPS if s.name in ("generate", "models", "evaluate")]
+    mine = [s for s in pipeline.STEPS if s.name in ("generate", "models", "evaluate")]
     assert [s.name for s in mine] == ["generate", "models", "evaluate"]
     # only this module's steps, plus one appended the way later features extend the demo
-    monkeypatch.setattr(demo, "STEPS", mine + [demo.DemoStep(
+    monkeypatch.setattr(pipeline, "STEPS", mine + [DemoStep(
         "extra", "an appended step", lambda ctx: extra.append(ctx.data) or ctx.sections.append(
-            demo.Section("Extra", "appended `step`\n")))])
+            Section("Extra", "appended `step`\n")))])
     rc = main(["demo", "--out", str(out), "--checkpoint", str(seq), "--baseline", str(base),
                "--max-tracks", "2", "--emd-every", "4", "--workers", "1"])
     assert rc == 0 and extra == [out / "data"]

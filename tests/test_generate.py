@@ -12,6 +12,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
+from seqshape._runner import parse_shard
 from seqshape.cli import main
 from seqshape.data import TrackDataset
 from seqshape.errors import ConfigError, DataError
@@ -20,7 +21,6 @@ from seqshape.sim.generate import (
     PRESETS,
     GenerateConfig,
     generate_dataset,
-    parse_shard,
     preset_config,
 )
 from seqshape.sim.sensors import get_sensor

@@ -5,11 +5,10 @@ import numpy as np
 import pytest
 
 from seqshape.camera import KittiCalib, kitti_default_calib, write_calib
-from seqshape.data.crop import CropConfig
+from seqshape.data.crop import CropConfig, crop_box
 from seqshape.data.kitti import (
     KittiLabel,
     KittiTrackingSequence,
-    crop_box,
     extract_tracks,
     format_label,
     image_path,

@@ -6,7 +6,6 @@ import itertools
 
 import numpy as np
 import pytest
-from _shapes import box_surface  # noqa: I001
 
 from seqshape.evaluation.metrics import (
     cd_floor,
@@ -20,6 +19,7 @@ from seqshape.evaluation.metrics import (
     subsample_pair,
     translation_error,
 )
+from seqshape.testing import box_surface
 
 
 def chamfer_brute(a, b) -> float:

@@ -271,3 +271,47 @@ def test_scale_for_and_config_fields():
     for bad in ({"scale_norm": "points"}, {"scale_ref": 0.0}, {"scale_max": 0.5}):
         with pytest.raises(ConfigError):
             ModelConfig(**bad)
+
+
+# ------------------------------------------------------------- the one torch pose transform
+
+
+def test_place_points_matches_numpy_geometry_and_round_trips():
+    from seqshape.geometry import canonical_to_sensor
+    from seqshape.model.transforms import place_points, unplace_points
+
+    rng = np.random.default_rng(4)
+    poses = np.column_stack([rng.normal(size=(2, 3, 3)).reshape(6, 3),
+                             rng.uniform(-np.pi, np.pi, 6)]).reshape(2, 3, 4)  # (B, T, 4)
+    pts = rng.normal(size=(2, 3, 7, 3))  # (B, T, K, 3)
+    placed = place_points(torch.from_numpy(pts), torch.from_numpy(poses)).numpy()
+    for b in range(2):
+        for t in range(3):
+            np.testing.assert_allclose(placed[b, t], canonical_to_sensor(pts[b, t], poses[b, t]),
+                                       atol=1e-12)
+    back = unplace_points(torch.from_numpy(placed), torch.from_numpy(poses)).numpy()
+    np.testing.assert_allclose(back, pts, atol=1e-12)
+    # a quarter turn by hand: canonical +x becomes sensor +y, then the translation
+    quarter = torch.tensor([[1.0, 2.0, 3.0, np.pi / 2]])
+    got = place_points(torch.tensor([[[2.0, 0.0, 0.5]]]), quarter)
+    np.testing.assert_allclose(got.numpy(), [[[1.0, 4.0, 3.5]]], atol=1e-6)
+
+
+def test_place_points_is_bitwise_the_three_former_copies():
+    """The network, trainer and pose-loss formulas it replaced, written out: same bits."""
+    from seqshape.model.transforms import place_points, unplace_points
+
+    torch.manual_seed(1)
+    out, pose = torch.randn(5, 40, 3), torch.randn(5, 4)
+    c, s = torch.cos(pose[..., 3:4]), torch.sin(pose[..., 3:4])  # network
+    net = torch.stack([c * out[..., 0] - s * out[..., 1], s * out[..., 0] + c * out[..., 1],
+                       out[..., 2]], dim=-1) + pose[..., :3].unsqueeze(-2)
+    c, s = torch.cos(pose[:, 3])[:, None], torch.sin(pose[:, 3])[:, None]  # trainer
+    trainer = torch.stack([c * out[..., 0] - s * out[..., 1], s * out[..., 0] + c * out[..., 1],
+                           out[..., 2]], -1) + pose[:, None, :3]
+    d = out - pose[:, None, :3]  # pose loss
+    loss = torch.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
+                        d[..., 2]], dim=-1)
+    assert torch.equal(place_points(out, pose), net)
+    assert torch.equal(place_points(out, pose), trainer)
+    assert torch.equal(unplace_points(out, pose), loss)

@@ -412,10 +412,3 @@ def test_bad_lidar_files(tmp_path):
     path.unlink()
     with pytest.raises(DataError, match=r"\.pcd\.bin: LiDAR file not found"):
         lg.points(1)
-
-
-def test_doctests():
-    import doctest
-
-    result = doctest.testmod(ns, optionflags=doctest.ELLIPSIS)
-    assert result.attempted > 0 and result.failed == 0

@@ -7,19 +7,20 @@ import numpy as np
 import pytest
 import trimesh
 
-from seqshape.amodal.degrade import (
+from seqshape.camera import kitti_default_calib, project_points
+from seqshape.data.kins import annotations_by_image, occlusion_order, read_kins, rle_to_mask
+from seqshape.data.kitti import KittiTrackingSequence, extract_tracks, read_velodyne
+from seqshape.errors import ConfigError, SeqshapeError
+from seqshape.geometry import wrap_angle
+from seqshape.sim.degrade import (
     NO_DEGRADE,
     DegradeConfig,
     Instance2D,
     degrade_instances,
     erode_dilate,
 )
-from seqshape.amodal.kins import annotations_by_image, occlusion_order, read_kins, rle_to_mask
-from seqshape.camera import kitti_default_calib, project_points
-from seqshape.data.kitti import KittiTrackingSequence, extract_tracks, read_velodyne
-from seqshape.errors import ConfigError, SeqshapeError
-from seqshape.geometry import wrap_angle
-from seqshape.sim.render import GROUND, camera_rays, cast_vehicle, render_camera
+from seqshape.sim.raycast import cast_posed
+from seqshape.sim.render import GROUND, camera_rays, render_camera
 from seqshape.sim.scene_writer import (
     SceneConfig,
     _rng,
@@ -154,7 +155,7 @@ def test_pixel_rays_project_to_their_pixels():
     calib = kitti_default_calib()
     rays = camera_rays(calib)
     mesh = _box(4, 30, 10)
-    tri, rng, _ = cast_vehicle(mesh, np.array([15.0, 0.0, 0.0, 0.3]), rays.origin, rays.dirs)
+    tri, rng, _ = cast_posed(mesh, np.array([15.0, 0.0, 0.0, 0.3]), rays.origin, rays.dirs)
     hit = np.flatnonzero(tri >= 0)
     assert len(hit) > 10000
     uv, depth = project_points(rays.origin + rays.dirs[hit] * rng[hit, None], calib)
@@ -185,8 +186,45 @@ def test_resume_and_settings_check(tmp_path):
     cfg = SceneConfig("kitti-tiny", 1, (2, 2), (5, 5))
     assert len(generate_scenes(tmp_path, cfg, seed=1, progress_bar=False)) == 1
     assert generate_scenes(tmp_path, cfg, seed=1, progress_bar=False) == []
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match="seed: 1 there vs 2 now"):
         generate_scenes(tmp_path, cfg, seed=2, progress_bar=False)
+
+
+def _tree(root) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file()}
+
+
+def test_shards_and_workers_give_the_files_of_one_run(tmp_path):
+    cfg = SceneConfig("kitti-tiny", 3, (1, 1), (3, 3))
+    full = [r.sequence for r in generate_scenes(tmp_path / "one", cfg, seed=4,
+                                                 degrade=NO_DEGRADE)]
+    assert full == ["0000", "0001", "0002"]
+    first = generate_scenes(tmp_path / "sh", cfg, seed=4, degrade=NO_DEGRADE, shard=(1, 2))
+    assert [r.sequence for r in first] == ["0000", "0002"]
+    second = generate_scenes(tmp_path / "sh", cfg, seed=4, degrade=NO_DEGRADE, shard=(2, 2),
+                             workers=2)
+    assert [r.sequence for r in second] == ["0001"]
+    assert _tree(tmp_path / "sh") == _tree(tmp_path / "one")
+    with pytest.raises(ConfigError, match="1 <= K <= N"):
+        generate_scenes(tmp_path / "sh", cfg, seed=4, degrade=NO_DEGRADE, shard=(3, 2))
+
+
+def test_old_import_paths_warn():
+    import seqshape.amodal.degrade as old_degrade
+    import seqshape.sim.generate as gen
+    import seqshape.sim.render as render
+    from seqshape._runner import parse_shard
+    from seqshape.sim import degrade
+
+    with pytest.warns(DeprecationWarning, match="seqshape.sim.degrade"):
+        assert old_degrade.DegradeConfig is degrade.DegradeConfig
+    with pytest.warns(DeprecationWarning, match="cast_posed"):
+        assert render.cast_vehicle is cast_posed
+    with pytest.warns(DeprecationWarning, match="seqshape._runner"):
+        assert gen.parse_shard is parse_shard
+    with pytest.raises(AttributeError):
+        render.no_such_name  # noqa: B018
 
 
 def _instances(n, size, rng, shape=(120, 200)):

@@ -164,6 +164,53 @@ def test_noise_and_dropout_statistics():
     assert abs(len(kept) / len(exact) - 0.7) < 0.04
 
 
+def test_sensor_noise_and_dropout_draw_nothing_when_off():
+    r = np.array([3.0, 7.5, 12.25])
+    quiet = _sensor()
+    rng = np.random.default_rng(1)
+    assert quiet.noisy_ranges(r, rng) is r
+    assert quiet.kept_returns(3, rng).all()
+    assert rng.random() == np.random.default_rng(1).random()  # no draw was taken
+    noisy = _sensor(range_noise_std=0.1, dropout=0.25)
+    a, b = np.random.default_rng(2), np.random.default_rng(2)
+    np.testing.assert_array_equal(noisy.noisy_ranges(r, a), r + b.normal(0.0, 0.1, 3))
+    np.testing.assert_array_equal(noisy.kept_returns(1000, a), b.random(1000) >= 0.25)
+    np.testing.assert_array_equal(quiet.in_range(np.array([0.4, 0.5, 100.0, 100.1, np.inf])),
+                                  [False, True, True, False, False])
+
+
+def test_window_grid_enumerates_windows_in_order():
+    from seqshape.sim.sensors import window_grid
+
+    cfg = _sensor(elev=(-6.0, -3.0, 0.0, 3.0), step=30.0)  # 12 azimuths
+    c0, c1 = np.array([1, 0, 2, 3]), np.array([3, 1, 2, 4])  # frame 2: no channel
+    k0, k1 = np.array([-2, 5, 0, 0]), np.array([1, 5, 11, 11])
+    g = window_grid(cfg, c0, c1, k0, k1)
+    want = [(f, c, k % 12) for f in range(4) for c in range(c0[f], c1[f])
+            for k in range(k0[f], k1[f] + 1)]
+    got = list(zip(g.row_frame[g.ray_row], g.row_ch[g.ray_row], g.col_k[g.ray_col],
+                   strict=True))
+    assert got == want
+    np.testing.assert_array_equal(g.frame_rays, [8, 1, 0, 12])
+    np.testing.assert_array_equal(g.col_frame, [0] * 4 + [1] + [3] * 12)  # frame 2 has none
+
+
+def test_one_sensor_drives_both_simulators(car):
+    """A sensor that is no preset, defined once, scans a track (generate's path) and renders a
+    scene sweep (the scenes' path): the same returns of the same car."""
+    from seqshape.sim.render import render_lidar
+
+    cfg = _sensor(elev=(-9.0, -4.0, -1.5, 2.5), step=0.5, max_range=40.0)
+    pose = np.array([9.0, 4.0, -1.2, 0.4])
+    track = raycast.scan_vehicle(car, pose, cfg, np.random.default_rng(0))
+    pts, owner = render_lidar([car], pose[None], np.array([[0.5, 0.5, 0.5]]), cfg,
+                              np.random.default_rng(0), ground_z=-1000.0)
+    scene = pts[owner == 0, :3]
+    assert len(track) > 20 and abs(len(scene) - len(track)) <= 2
+    gap = np.linalg.norm(track[:, None] - scene[None], axis=2)
+    assert gap.min(1).max() < 1e-3 and gap.min(0).max() < 1e-3
+
+
 def test_intersector_cached(car):
     assert raycast.mesh_raycaster(car) is raycast.mesh_raycaster(car)
     assert raycast.mesh_raycaster(_box()) is not raycast.mesh_raycaster(car)

@@ -8,8 +8,6 @@ root written in the official format.
 from __future__ import annotations
 
 import json
-import sys
-import types
 from pathlib import Path
 
 import numpy as np
@@ -18,9 +16,9 @@ import pytest
 from seqshape.cli import main
 from seqshape.data import TrackDataset
 from seqshape.data.sequence import Box3D, DrivingLog
+from seqshape.data.tracks_export import TracksConfig, extract_dataset, log_split
 from seqshape.errors import ConfigError, DataError
 from seqshape.geometry import canonical_to_sensor
-from seqshape.scripts.tracks import TracksConfig, extract_dataset, log_split
 
 SIZE = np.array([4.0, 1.8, 1.5])
 SENSOR_HEIGHT = 1.7  # ground at z = -1.7 in the sensor frame
@@ -240,11 +238,11 @@ def test_workers_give_the_same_dataset(logs, tmp_path):
 
 
 def test_interrupt_leaves_complete_files_and_resumes(logs, tmp_path, monkeypatch):
-    from seqshape.data import track
+    from seqshape.data import tracks_export
 
     root, _ = logs
     out = tmp_path / "out"
-    real, calls = track.save_track, []
+    real, calls = tracks_export.save_track, []
 
     def save_then_interrupt(path, tr, **kw):
         real(path, tr, **kw)
@@ -252,11 +250,11 @@ def test_interrupt_leaves_complete_files_and_resumes(logs, tmp_path, monkeypatch
         if len(calls) == 2:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(track, "save_track", save_then_interrupt)
+    monkeypatch.setattr(tracks_export, "save_track", save_then_interrupt)
     assert _run(root, out) == 130
     assert sorted(p.name for p in out.glob("logs/*.json")) == ["fake_a.json"]
     assert not (out / "manifest.json").exists() and not list(out.rglob("*.tmp"))
-    monkeypatch.setattr(track, "save_track", real)
+    monkeypatch.setattr(tracks_export, "save_track", real)
     assert _run(root, out) == 0
     assert _manifest(out)[2] == ["a", "b", "c"]
 
@@ -301,23 +299,21 @@ def test_other_settings_into_the_same_folder_are_refused(logs, tmp_path, capsys)
     assert _manifest(out)[2] == ["a", "b", "c"]
 
 
-def _fake_reference_module(fail_on=()):
-    mod = types.ModuleType("seqshape.data.reference")
-
+def _fake_reference(fail_on=()):
     def accumulated_reference(track, n_points=2048):
         if track.meta["log"] in fail_on:
             raise ValueError("too few points")
         pts = np.concatenate(track.points)[:n_points]
         return pts, {"kind": "accumulated", "n_frames": len(track), "n_points": n_points}
 
-    mod.accumulated_reference = accumulated_reference
-    return mod
+    return accumulated_reference
 
 
 def test_reference_becomes_the_complete_shape(logs, tmp_path, monkeypatch):
+    from seqshape.data import tracks_export
+
     root, _ = logs
-    monkeypatch.setitem(sys.modules, "seqshape.data.reference",
-                        _fake_reference_module(fail_on={"b"}))
+    monkeypatch.setattr(tracks_export, "accumulated_reference", _fake_reference(fail_on={"b"}))
     out = tmp_path / "out"
     assert main(["tracks", "--dataset", "fake", "--root", str(root), "--out", str(out),
                  "--sequence", "a,b", "--reference-points", "50"]) == 0

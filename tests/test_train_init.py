@@ -13,7 +13,7 @@ import zlib
 import numpy as np
 import pytest
 import torch
-from _model_data import box_surface, make_dataset
+from _model_data import make_dataset
 
 from seqshape.amodal.accumulate import export_tracks
 from seqshape.data import Track
@@ -21,6 +21,7 @@ from seqshape.errors import ConfigError, DataError
 from seqshape.geometry import canonical_to_sensor
 from seqshape.model import Estimator
 from seqshape.model import estimator as estimator_module
+from seqshape.testing import box_shell
 from seqshape.train import Trainer, get_train_config
 
 SMOKE = get_train_config("smoke")
@@ -129,7 +130,7 @@ def _seen_track(track_id: str, seed: int, frames: int = 8) -> Track:
     """A box car driving past the sensor; each frame keeps the sensor-facing surface points
     (no complete shape: export_tracks accumulates it)."""
     rng = np.random.default_rng(seed)
-    surface = box_surface(SIZE, 4000, rng)
+    surface = box_shell(4000, rng, SIZE, dtype=np.float32)
     t = np.arange(frames)
     poses = np.stack([8.0 + 0.8 * t, np.full(frames, 4.0 + seed), np.full(frames, -0.9),
                       np.full(frames, 0.1 * seed)], 1)
@@ -194,7 +195,7 @@ def _tiny_kitti(root, frames: int = 6):
         for k, (x, y, v, yaw) in enumerate([(8, 2.5, 0.5, 0.2), (14, -3.0, 0.7, -0.1),
                                             (22, 3.5, 0.4, 0.05)]):
             pose = np.array([x + v * t, y, z, yaw])
-            s = canonical_to_sensor(box_surface(SIZE, 3000, rng), pose)
+            s = canonical_to_sensor(box_shell(3000, rng, SIZE, dtype=np.float32), pose)
             scan.append(s[np.linalg.norm(s[:, :2], axis=1) < np.linalg.norm(pose[:2])])
             labels.append(KittiLabel(frame=t, track_id=k, type="Car", truncated=0, occluded=0,
                                      bbox=[0, 0, 1, 1], **pose_to_label_fields(pose, SIZE, calib)))
@@ -207,8 +208,8 @@ def _tiny_kitti(root, frames: int = 6):
 
 def test_sc_gt_fine_tune_command_sequence(source, tmp_path):
     """docs/amodal.md: export tracks -> train --init -> label --mode sc-gt --checkpoint."""
-    from seqshape.amodal.kins import read_kins
     from seqshape.cli import main
+    from seqshape.data.kins import read_kins
 
     kitti = _tiny_kitti(tmp_path / "kitti")
     tracks, run, labels = tmp_path / "tracks", tmp_path / "run", tmp_path / "labels.json"

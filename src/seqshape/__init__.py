@@ -1,6 +1,6 @@
 """seqshape: sequential joint shape and pose estimation of vehicles from partial LiDAR scans.
 
-Conventions (fixed everywhere, see docs/design.md):
+Conventions (fixed everywhere, see docs/architecture.md):
 
 * metres and radians inside; centimetres and degrees only in reports;
 * sensor frame: x forward, y left, z up, origin at the LiDAR;
@@ -11,18 +11,18 @@ Conventions (fixed everywhere, see docs/design.md):
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
+from seqshape._version import __version__
 
 __all__ = ["Estimator", "Track", "TrackDataset", "__version__"]
 
 
-def __getattr__(name: str):  # lazy: importing seqshape must not import torch
+def __getattr__(name: str):  # lazy: `seqshape --help` imports this package; keep it light
     if name == "Estimator":
-        from seqshape.model.estimator import Estimator
+        from seqshape.model.estimator import Estimator  # lazy: torch
 
         return Estimator
     if name in ("Track", "TrackDataset"):
-        from seqshape import data
+        import seqshape.data as data  # lazy: numpy and the data readers
 
         return getattr(data, name)
     raise AttributeError(f"module 'seqshape' has no attribute {name!r}")

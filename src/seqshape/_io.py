@@ -16,6 +16,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from seqshape.errors import DataError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
@@ -73,8 +75,6 @@ def read_text(path: str | Path, what: str) -> str:
 
     ``what`` names the kind of file in the message ("label file", "calibration file", ...).
     """
-    from seqshape.errors import DataError
-
     try:
         return Path(path).read_text()
     except FileNotFoundError:

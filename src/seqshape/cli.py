@@ -1,7 +1,8 @@
 """The ``seqshape`` command: one sub-command per module in :mod:`seqshape.scripts`.
 
 Each script module defines ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``.
-Modules are imported only when their command runs, so ``seqshape --help`` is instant.
+Modules are imported only when their command runs, so ``seqshape --help`` is instant. Every
+option's help shows its default (:class:`HelpFormatter`).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import importlib
 import logging
 import sys
 
-from seqshape import __version__
+from seqshape._version import __version__
 from seqshape.errors import SeqshapeError
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -27,8 +28,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tracks": ("tracks", "extract vehicle tracks from real driving logs (KITTI, Argoverse 2, "
                          "nuScenes) as a track dataset"),
     "label": ("label", "produce amodal mask labels for a driving log with cameras"),
+    "export-tracks": ("export_tracks", "write one log's tracks for fine-tuning (complete "
+                                       "shapes: mirrored accumulations)"),
     "evaluate-masks": ("evaluate_masks", "score amodal mask labels against a reference"),
 }
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Appends ``(default: X)`` to an option's help unless the help already says its default
+    (the options of a config dataclass, or a default in words); switches have none."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text or action.default in (None, argparse.SUPPRESS) or action.nargs == 0
+                or not action.option_strings):
+            return text
+        return text + " (default: %(default)s)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     module_name, help_ = COMMANDS[head.command]
     module = importlib.import_module(f"seqshape.scripts.{module_name}")
     sub = argparse.ArgumentParser(prog=f"seqshape {head.command}",
-                                  description=getattr(module, "HELP", help_))
+                                  description=getattr(module, "HELP", help_),
+                                  formatter_class=HelpFormatter)
     module.add_arguments(sub)
     args = sub.parse_args(rest)
     logging.basicConfig(level=logging.DEBUG if head.verbose else logging.INFO,

@@ -80,12 +80,21 @@ def sensor_to_canonical(points, pose) -> np.ndarray:
 
 
 def compose(a, b) -> np.ndarray:
-    """Pose of ``b`` expressed through ``a``: ``T(compose(a, b)) = T(a) @ T(b)``."""
+    """Pose of ``b`` expressed through ``a``: ``T(compose(a, b)) = T(a) @ T(b)``.
+
+    >>> compose([1.0, 0.0, 0.0, np.pi / 2], [2.0, 0.0, 0.0, 0.0]).round(6)
+    array([1.      , 2.      , 0.      , 1.570796])
+    """
     return matrix_to_pose(pose_to_matrix(a) @ pose_to_matrix(b))
 
 
 def invert(pose) -> np.ndarray:
-    """The inverse transform as a pose: ``compose(pose, invert(pose)) == 0``."""
+    """The inverse transform as a pose: ``compose(pose, invert(pose)) == 0``.
+
+    >>> q = np.array([3.0, -1.0, 0.5, 0.4])
+    >>> bool(np.allclose(compose(q, invert(q)), 0.0))
+    True
+    """
     return matrix_to_pose(np.linalg.inv(pose_to_matrix(pose)))
 
 
@@ -93,6 +102,12 @@ def box_corners(size, pose=None) -> np.ndarray:
     """The 8 corners ``(8, 3)`` of a box of ``size`` (l, w, h), in the canonical frame or posed.
 
     Order: the four bottom corners counter-clockwise from front-left, then the four top ones.
+
+    >>> box_corners((4.0, 2.0, 1.0))[:4]
+    array([[ 2. ,  1. , -0.5],
+           [-2. ,  1. , -0.5],
+           [-2. , -1. , -0.5],
+           [ 2. , -1. , -0.5]])
     """
     hl, hw, hh = (float(v) / 2 for v in size)
     xy = np.array([[hl, hw], [-hl, hw], [-hl, -hw], [hl, -hw]])
@@ -101,7 +116,12 @@ def box_corners(size, pose=None) -> np.ndarray:
 
 
 def points_in_box(points, size, pose, margin: float = 0.0) -> np.ndarray:
-    """Boolean mask of the ``(N, 3)`` sensor-frame points inside a posed box (+ margin, m)."""
+    """Boolean mask of the ``(N, 3)`` sensor-frame points inside a posed box (+ margin, m).
+
+    >>> pose = np.array([10.0, 0.0, 0.0, np.pi / 2])  # length along the sensor's y axis
+    >>> points_in_box([[10.0, 1.9, 0.0], [11.9, 0.0, 0.0]], (4.0, 2.0, 1.0), pose)
+    array([ True, False])
+    """
     local = sensor_to_canonical(np.asarray(points, dtype=np.float64), pose)
     half = np.asarray(size, dtype=np.float64) / 2 + margin
     return np.all(np.abs(local) <= half, axis=1)

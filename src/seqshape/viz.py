@@ -1,4 +1,5 @@
-"""Pictures of one Track: a PNG overview (matplotlib) and an offline 3D view (plotly HTML).
+"""Pictures of one Track: a PNG overview (matplotlib) and an offline 3D view (plotly HTML);
+and of one scene frame with its amodal ground truth (:func:`draw_scene_frame`).
 
 The PNG has a bird's-eye view of the trajectory with the points of every frame (sensor frame,
 coloured by frame), the number of points per frame over time, and the complete ground-truth
@@ -9,11 +10,16 @@ points, the complete shape placed with the frame's ground-truth pose, and the tr
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 
+from seqshape._io import atomic_write_bytes
+from seqshape.data.kins import annotations_by_image, read_kins, segm_to_mask
+from seqshape.data.kitti import KittiTrackingSequence
 from seqshape.data.track import Track
+from seqshape.errors import DataError
 from seqshape.geometry import box_corners
 
 
@@ -25,10 +31,10 @@ def _footprint(track: Track, t: int) -> np.ndarray:
 
 def plot_track_png(track: Track, path: str | Path, dpi: int = 110) -> Path:
     """Write the PNG overview of ``track`` to ``path``; returns the path."""
-    import matplotlib
+    import matplotlib  # heavy: plotting only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: plotting only
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -50,7 +56,7 @@ def plot_track_png(track: Track, path: str | Path, dpi: int = 110) -> Path:
 
 
 def _bev(ax, track: Track) -> None:
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: plotting only
 
     known = ~np.isnan(track.poses).any(1)
     cmap = plt.get_cmap("viridis")
@@ -112,7 +118,7 @@ def track_html(track: Track, path: str | Path, max_frames: int = 100,
     At most ``max_frames`` evenly spaced frames and ``complete_points`` points of the complete
     shape per frame are drawn, to keep the file small (plotly.js itself is ~4 MB).
     """
-    import plotly.graph_objects as go
+    import plotly.graph_objects as go  # heavy: the HTML view only
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -159,3 +165,113 @@ def _slider(fig, track: Track, frames: np.ndarray) -> dict:
                   args=[{"visible": ((owner == -1) | (owner == k)).tolist()}])
              for k, t in enumerate(frames)]
     return dict(active=0, steps=steps, currentvalue=dict(prefix="frame "), pad=dict(t=30))
+
+
+# ----------------------------------------------------------------------------- scene frames
+
+
+def _scene_palette(i: int) -> np.ndarray:
+    import matplotlib  # heavy: plotting only
+
+    return np.asarray(matplotlib.colormaps["tab20"](i % 20)[:3])
+
+
+def _draw_scene_image(ax, image: np.ndarray, anns: list[dict]) -> None:
+    import cv2  # heavy: only the scene figure needs OpenCV
+
+    img = image.astype(np.float64) / 255.0
+    h, w = image.shape[:2]
+    outlines = []
+    for ann in anns:
+        c = _scene_palette(int(ann.get("track_id", 0)))
+        vis = segm_to_mask(ann["i_segm"], h, w)
+        img[vis] = 0.45 * img[vis] + 0.55 * c
+        amodal = segm_to_mask(ann["a_segm"], h, w).astype(np.uint8)
+        contours, _ = cv2.findContours(amodal, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        outlines.append((contours, c, vis, ann))
+    ax.imshow(np.clip(img, 0, 1))
+    for contours, c, vis, ann in outlines:
+        for cnt in contours:
+            pts = cnt[:, 0, :]
+            ax.plot(np.r_[pts[:, 0], pts[0, 0]], np.r_[pts[:, 1], pts[0, 1]], "-", color=c, lw=1.2)
+        rows, cols = np.nonzero(vis)
+        if len(rows):
+            ax.text(cols.mean(), rows.mean(), f"{ann['oco_id']}.{ann['ico_id']}", color="white",
+                    fontsize=8, ha="center", va="center", weight="bold",
+                    bbox={"facecolor": c, "alpha": 0.8, "pad": 1, "lw": 0})
+    ax.set_axis_off()
+
+
+def _draw_scene_bev(ax, points: np.ndarray, boxes, camera, extent: float) -> None:
+    sel = (points[:, 0] > -10) & (points[:, 0] < extent) & (np.abs(points[:, 1]) < extent * 0.6)
+    p = points[sel]
+    low = p[:, 2] < np.quantile(p[:, 2], 0.02) + 0.15 if len(p) else np.zeros(0, bool)
+    ax.scatter(-p[low, 1], p[low, 0], c="0.75", s=0.1, linewidths=0)
+    ax.scatter(-p[~low, 1], p[~low, 0], c=p[~low, 2], s=1.0, cmap="viridis", vmin=-1.8,
+               vmax=0.5, linewidths=0)
+    for tid, pose, size in boxes:
+        c = box_corners(size, pose)[:4]
+        ring = np.r_[c, c[:1]]
+        col = _scene_palette(tid)
+        ax.plot(-ring[:, 1], ring[:, 0], "-", color=col, lw=1.2)
+        front = (c[0] + c[3]) / 2
+        ax.plot([-pose[1], -front[1]], [pose[0], front[0]], "-", color=col, lw=1.0)
+        ax.text(-pose[1], pose[0], str(tid), fontsize=7, color="black", ha="center",
+                clip_on=True)
+    w = camera.width
+    fx, cx = camera.K[0, 0], camera.K[0, 2]
+    for u in (0.0, w - 1.0):  # field-of-view rays (velodyne y = -camera x)
+        lateral = (cx - u) / fx
+        ax.plot([0, -lateral * extent], [0, extent], "--", color="grey", lw=0.8)
+    ax.plot(0, 0, "r^", ms=6)
+    ax.set_xlim(-extent * 0.6, extent * 0.6)
+    ax.set_ylim(-10, extent)
+    ax.set_aspect("equal")
+    ax.set_xlabel("-y (m, right)")
+    ax.set_ylabel("x (m, forward)")
+
+
+def draw_scene_frame(root: Path, sequence: str, frame: int, out: Path, extent: float = 50.0):
+    """Write the PNG figure of ``frame`` of ``sequence`` under ``root`` (``seqshape scenes``).
+
+    Left: the rendered image with every KINS instance's visible mask filled, its amodal
+    outline drawn, and ``cluster.order`` (KINS ``oco_id.ico_id``; order 1 is the front of its
+    cluster, ``0.0`` an instance that overlaps no other) written on it. Right: the LiDAR sweep
+    from above (colour = height) with the label_02 boxes and track ids, and the camera's
+    field of view (``extent`` metres ahead).
+    """
+    import cv2  # heavy: only the scene figure needs OpenCV
+    import matplotlib  # heavy: plotting only
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # heavy: plotting only
+
+    seq = KittiTrackingSequence(root, sequence)
+    if not seq.frames:
+        raise DataError(root, f"no sequence {seq.sequence} here (found "
+                              f"{KittiTrackingSequence.sequences(root)})")
+    if frame not in seq.frames:
+        raise DataError(seq.velodyne_path(frame), f"frame {frame} not in sequence {seq.sequence} "
+                                                  f"(frames {seq.frames[:1]}..{seq.frames[-1:]})")
+    img_path = seq.image_path(frame)
+    image = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise DataError(img_path, "missing or unreadable image")
+    kins_path = Path(root) / "amodal" / f"{seq.sequence}.json"
+    doc = read_kins(kins_path)
+    by_image = annotations_by_image(doc)
+    image_id = next((im["id"] for im in doc["images"] if im.get("frame", im["id"]) == frame), None)
+    anns = by_image.get(image_id, [])
+    boxes = [(int(b.track_id), b.pose, b.size) for b in seq.boxes(frame)]
+    fig = plt.figure(figsize=(16, 5.2))
+    ax_img = fig.add_axes([0.01, 0.05, 0.70, 0.9])
+    ax_bev = fig.add_axes([0.75, 0.08, 0.23, 0.86])
+    _draw_scene_image(ax_img, image[:, :, ::-1], anns)
+    ax_img.set_title(f"{root.name} sequence {seq.sequence} frame {frame}: visible masks filled, "
+                     f"amodal outlines, occlusion cluster.order", fontsize=9)
+    _draw_scene_bev(ax_bev, seq.points(frame), boxes, seq.camera(), extent)
+    ax_bev.set_title("LiDAR (grey: ground, colour: z) and label_02 boxes", fontsize=9)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(out, buf.getvalue())

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from seqshape.data.dataset import write_dataset
 from seqshape.data.reference import (
     BOX_MARGIN,
     VOXEL,
@@ -64,8 +65,6 @@ def export_tracks(tracks: Sequence[Track], out: str | Path, val_fraction: float 
     track when two or more tracks are kept and ``val_fraction > 0`` (a single track is "train"
     only; the trainer then skips validation with a warning). Returns the opened dataset.
     """
-    from seqshape.data.dataset import write_dataset
-
     if not 0 <= val_fraction < 1:
         raise ValueError(f"val_fraction must be in [0, 1), got {val_fraction}")
     kept = []

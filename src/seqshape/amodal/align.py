@@ -41,7 +41,7 @@ class AlignConfig:
     ``max_px``: cap of that range (pixels); ``min_gain``: IoU gain needed to move;
     ``min_inside``: share of the vehicle's own LiDAR returns that must stay inside the moved
     mask; ``max_points``: only vehicles with fewer own returns in the frame are moved (0, the
-    default: no limit; 100 lost mIoU on the kitti-like scenes, docs/results.md)."""
+    default: no limit; a cap lost mIoU, docs/results.md, "Amodal labels")."""
 
     max_shift: float = 0.4
     max_px: int = 40

@@ -5,11 +5,12 @@ the image. The projected points are a dense but irregular sample of the silhouet
 shape (the union of the triangles of the alpha complex) follows concavities that the convex
 hull would fill, and it does not bridge gaps wider than the chosen radius.
 
-Construction: the Delaunay triangulation of the points (OpenCV's ``Subdiv2D``, about 4x faster
-than ``scipy.spatial.Delaunay`` here; its bounding triangle is placed far outside the points so
-that only huge hull slivers, which the alpha test rejects anyway, can differ); a triangle
-is kept when its circumradius is below ``1 / alpha`` pixels; the kept triangles are filled with
-``cv2.fillPoly`` at 1/16-pixel precision. Pixel ``(row v, column u)`` is the one whose centre is
+Construction: the Delaunay triangulation of the points (OpenCV's ``Subdiv2D``, faster than
+``scipy.spatial.Delaunay`` here: docs/results.md, "Figures behind defaults in the code"; its
+bounding triangle is placed far outside the points so that only huge hull slivers, which the
+alpha test rejects anyway, can differ); a triangle is kept when its circumradius is below
+``1 / alpha`` pixels; the kept triangles are filled with ``cv2.fillPoly`` at 1/16-pixel
+precision. Pixel ``(row v, column u)`` is the one whose centre is
 at image coordinates ``(u, v)`` (the KITTI projection convention).
 
 Automatic alpha (``alpha=None``): radius

@@ -14,11 +14,20 @@ detections start new tracks; a track unmatched for more than ``max_age`` frames 
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from seqshape._progress import progress
+from seqshape.amodal.diffusion import diffuse_labels, ground_mask, ground_plane, grow_instances
+from seqshape.amodal.refine import TrackInput
+from seqshape.camera import as_camera
+from seqshape.data.kins import read_coco_instances, rle_to_mask
+from seqshape.errors import DataError
 
 _FORBIDDEN = 1e6
 
@@ -118,9 +127,6 @@ def segment_frame(scan, camera, masks, min_depth: float = 1.0, grow: bool = True
     (``grow``) each instance grown into the connected points outside the image
     (:func:`~seqshape.amodal.diffusion.grow_instances`).
     """
-    from seqshape.amodal.diffusion import diffuse_labels, ground_mask, grow_instances
-    from seqshape.camera import as_camera
-
     camera = as_camera(camera)
     pts = np.asarray(scan, dtype=np.float64)[:, :3]
     pts = pts[~ground_mask(pts, plane=plane)]
@@ -140,8 +146,6 @@ def fill_gaps(track, max_gap: int, ego=None):
     frames filled by frames without points (their pose comes from the smoothed track:
     refinement ``"smooth"``); ``ego`` ``{frame: (4, 4)}`` (or an array indexed by frame) sets
     ``track.ego`` when every frame of the track has one."""
-    from seqshape.amodal.refine import TrackInput
-
     frames, points, masks = [], [], []
     for i, f in enumerate(track.frames):
         if i and 0 < f - track.frames[i - 1] - 1 <= max_gap:
@@ -177,11 +181,6 @@ def instance_masks_by_frame(log, camera: str, instances_path, categories=None
     ``SSSS/FFFFFF.png``); segmentations may be RLE or polygons (read as RLE). ``categories``:
     keep only these category ids (default all).
     """
-    from pathlib import Path
-
-    from seqshape.amodal.kins import read_coco_instances
-    from seqshape.errors import DataError
-
     instances_path = Path(instances_path)
     if not instances_path.is_file():
         raise DataError(instances_path, "2D instance masks not found (sc-seg needs COCO "
@@ -198,8 +197,6 @@ def instance_masks_by_frame(log, camera: str, instances_path, categories=None
         out[frame] = anns.get(image_id, []) if image_id is not None else []
     if log.frames and not any(img in by_name for img in
                               (log.image_file_name(f, camera) for f in log.frames)):
-        import logging
-
         logging.getLogger(__name__).warning(
             "%s: no image file_name matches %s (e.g. %r): no 2D instances", instances_path,
             log.name, log.image_file_name(log.frames[0], camera))
@@ -222,11 +219,6 @@ def segment_sequence(log, instances_path, min_points: int = 5, gate: float = 3.0
     per frame, the ``(mask, annotation, ground plane)`` of every 2D instance dropped for too
     few points (:mod:`seqshape.amodal.fallback`).
     """
-    from seqshape._progress import progress
-    from seqshape.amodal.diffusion import ground_plane
-    from seqshape.amodal.kins import rle_to_mask
-    from seqshape.amodal.refine import TrackInput
-
     camera = camera or log.default_camera
     by_frame = instance_masks_by_frame(log, camera, instances_path, categories)
     ego = {f: log.ego_pose(f) for f in log.frames}

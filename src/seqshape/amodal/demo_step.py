@@ -1,93 +1,21 @@
-"""The amodal-labelling step of ``seqshape demo``: the whole chain on a kitti-tiny scene.
+"""Deprecated: the demo's amodal step moved to :mod:`seqshape.demo.amodal_step`.
 
-:func:`amodal_demo_step` generates a small scene (``seqshape scenes --preset kitti-tiny``)
-unless one is there, labels it with gt-accumulation and, when estimator weights load, sc-gt and
-sc-seg, scores each against the exact ground truth and draws overlays of a few frames. It
-returns a :class:`DemoStepResult` the demo report embeds (markdown + image paths).
+Kept for one release so that old imports work (with a DeprecationWarning). It imports
+:mod:`seqshape.demo` only when a moved name is used (an upward import, amodal -> demo, that
+must not run when :mod:`seqshape.amodal` loads); the module goes with the next release.
 """
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass, field
-from pathlib import Path
+import importlib
+import warnings
 
-log = logging.getLogger(__name__)
-
-TITLE = "Automatic amodal mask labels"
+_MOVED = ("TITLE", "DemoStepResult", "amodal_demo_step", "step_amodal")
 
 
-@dataclass
-class DemoStepResult:
-    """What the demo report shows: a title, markdown, overlay PNGs and the metrics."""
-
-    title: str
-    markdown: str
-    images: list[Path] = field(default_factory=list)
-    metrics: dict = field(default_factory=dict)
-
-
-def amodal_demo_step(work_dir, checkpoint: str | None = "pretrained", seed: int = 0,
-                     overlay_frames: int = 3, estimator=None) -> DemoStepResult:
-    """Run the labelling chain in ``work_dir`` (created); see the module doc.
-
-    ``estimator``: an already loaded Estimator (else ``checkpoint`` is loaded; when that
-    fails the sc-* modes are skipped and the report says why).
-    """
-    from seqshape.amodal.evaluate import evaluate_files, markdown_table, summarise
-    from seqshape.amodal.labeler import (
-        LabelConfig,
-        label_log,
-        load_estimator,
-        write_labels,
-        write_overlays,
-    )
-    from seqshape.data.kitti import KittiTrackingSequence
-    from seqshape.errors import SeqshapeError
-    from seqshape.sim.scene_writer import generate_scenes, scene_config
-
-    work = Path(work_dir)
-    scenes = work / "scenes"
-    generate_scenes(scenes, scene_config("kitti-tiny"), seed=seed, workers=1)
-    sequence = KittiTrackingSequence.sequences(scenes)[0]
-    seq = KittiTrackingSequence(scenes, sequence)
-    note = ""
-    if estimator is None:
-        try:
-            estimator = load_estimator(checkpoint)
-        except SeqshapeError as exc:
-            note = f"sc-gt and sc-seg skipped: no estimator weights ({exc})."
-            log.warning("%s", note)
-    modes = ["gt-accumulation"] + (["sc-gt", "sc-seg"] if estimator is not None else [])
-    rows, images = {}, []
-    frames = seq.frames[:: max(1, len(seq.frames) // overlay_frames)][:overlay_frames]
-    for mode in modes:
-        result = label_log(seq, LabelConfig(mode=mode), estimator=estimator)
-        path = work / "labels" / f"{mode}_{sequence}.json"
-        write_labels(path, result)
-        rows[mode] = summarise(*evaluate_files([(path, scenes / "amodal" / f"{sequence}.json")]))
-        rows[mode]["frames_per_s"] = result.timings["frames"] / max(result.timings["total"], 1e-9)
-        images += write_overlays(seq, result, work / "overlays" / mode, frames=frames)
-    md = (f"Scene: kitti-tiny, sequence {sequence}, {len(seq.frames)} frames, labelled with "
-          f"{', '.join(modes)} and scored against the exact amodal ground truth.\n\n"
-          + markdown_table(rows, title="Amodal mask labels vs exact ground truth")
-          + ("\n" + note + "\n" if note else ""))
-    return DemoStepResult(TITLE, md, images, rows)
-
-
-def step_amodal(ctx) -> None:
-    """``seqshape demo`` step: :func:`amodal_demo_step` in ``DIR/amodal``, added as a Section.
-
-    Uses the demo's loaded sequential estimator (``ctx.estimators["sequential"]``) when there
-    is one.
-    """
-    from seqshape.scripts.demo import Section
-
-    work = ctx.out / "amodal"
-    res = amodal_demo_step(work, checkpoint=getattr(ctx.args, "checkpoint", "pretrained"),
-                           seed=getattr(ctx.args, "seed", 0),
-                           estimator=ctx.estimators.get("sequential"))
-    ctx.state["amodal"] = res.metrics
-    images = [(f"{p.parent.name}: frame {p.stem.split('_')[-1]}",
-               str(p.relative_to(ctx.out))) for p in res.images]
-    ctx.sections.append(Section(res.title, res.markdown, images=images))
+def __getattr__(name: str):
+    if name not in _MOVED:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    warnings.warn(f"{__name__}.{name} moved to seqshape.demo.amodal_step.{name}; the old path "
+                  f"will be removed in the next release", DeprecationWarning, stacklevel=2)
+    return getattr(importlib.import_module("seqshape.demo.amodal_step"), name)

@@ -24,7 +24,8 @@ The link distance of that filter grows with range, ``max(cluster_gap, cluster_ga
 range)`` (``cluster_gap_per_m`` = 0.025: 1.25 m at 50 m): the gap between two scan lines on
 one vehicle is range times the vertical angular step (0.4 degrees on the HDL-64E, 0.7 m at
 100 m), larger still where a line passes from the boot lid to the roof of a vehicle seen
-from behind (measured: 1 m at 50 m), and a fixed 0.5 m kept only the nearest face.
+from behind (docs/results.md, "Figures behind defaults in the code"), and a fixed 0.5 m kept
+only the nearest face.
 
 Growing outside the image (:func:`grow_instances`): the camera sees about 90 degrees of the
 360-degree scan, so a vehicle cut by the image border (one being passed, or entering the view)

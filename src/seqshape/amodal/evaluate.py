@@ -20,9 +20,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+
+from seqshape.data.kins import annotation_mask, read_kins
+from seqshape.data.kitti import read_labels
 
 IOU_THRESHOLD = 0.5
 #: occlusion fraction bins (label, low, high): low <= occ < high
@@ -183,13 +187,10 @@ def distances_from_labels(gt_path) -> dict[tuple[int, str], float]:
     The distance is the planar range (m) of the box centre in the velodyne frame. Empty when
     the label file does not exist.
     """
-    from pathlib import Path
-
     gt_path = Path(gt_path)
     label_path = gt_path.parent.parent / "label_02" / f"{gt_path.stem}.txt"
     if not label_path.is_file():
         return {}
-    from seqshape.data.kitti import read_labels
 
     out = {}
     for lab in read_labels(label_path):
@@ -216,7 +217,6 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
     """
     if segm not in ("a_segm", "i_segm"):
         raise ValueError(f"segm must be 'a_segm' or 'i_segm', got {segm!r}")
-    from seqshape.amodal.kins import annotation_mask, read_kins
 
     results: list[InstanceResult] = []
     unmatched = 0

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from seqshape.amodal.masks import InstanceMask
+from seqshape.camera import as_camera
 
 _MAX_UV = 2000  # pixels kept as the instance's depth samples for the occlusion order
 
@@ -48,8 +49,6 @@ def ground_depth(u: float, v: float, plane: tuple[np.ndarray, float],
     """Where the ray through pixel ``(u, v)`` of ``camera`` (a PinholeCamera) meets the ground
     plane ``n . x + d = 0`` (sensor frame): ``(camera depth, point (3,))``, or None if it does
     not (in front)."""
-    from seqshape.camera import as_camera
-
     a, b = as_camera(camera).unproject([[u, v], [u, v]], [1.0, 2.0])
     n, d = plane
     denom = float(n @ (b - a))
@@ -67,8 +66,6 @@ def mask_instance(track_id: str, mask: np.ndarray, score: float,
     """An :class:`InstanceMask` whose amodal mask is ``mask`` (H, W), at the depth where its
     bottom edge meets the ground (``camera``: a PinholeCamera), or None when the mask is not
     a plausible vehicle."""
-    from seqshape.camera import as_camera
-
     camera = as_camera(camera)
     mask = np.asarray(mask, dtype=bool)
     if score < cfg.min_score or not mask.any():

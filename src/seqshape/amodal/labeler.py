@@ -26,11 +26,12 @@ track's frames) and refine those estimates (:mod:`.refine`); ``online=True`` (``
 Then per frame the completed clouds are projected into the camera, their alpha shapes filled
 as amodal masks, and ordered by depth for the visible masks (:mod:`.masks`); the result is KINS
 JSON, one file per camera. Category ids of the gt modes come from
-:data:`seqshape.data.sequence.CLASS_TO_KINS` (car 4, van 7, truck 6, bus 9, trailer 10).
+:data:`seqshape.data.categories.CLASS_TO_KINS` (car 4, van 7, truck 6, bus 9, trailer 10).
 """
 
 from __future__ import annotations
 
+import colorsys
 import logging
 import time
 from dataclasses import dataclass, field
@@ -39,13 +40,27 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from seqshape._io import atomic_write_bytes
 from seqshape._progress import progress
 from seqshape.amodal.accumulate import gt_accumulation_clouds
 from seqshape.amodal.align import AlignConfig
+from seqshape.amodal.association import segment_sequence
+from seqshape.amodal.fallback import mask_instance
 from seqshape.amodal.masks import ORDERS, InstanceMask, frame_masks
 from seqshape.amodal.refine import REFINE_MODES, TrackInput, complete_tracks
+from seqshape.data.categories import CLASS_TO_KINS
 from seqshape.data.crop import CropConfig
-from seqshape.errors import ConfigError, DataError
+from seqshape.data.extract import extract_tracks
+from seqshape.data.kins import (
+    image_entry,
+    kins_annotation,
+    occlusion_order,
+    rle_to_mask,
+    write_kins,
+)
+from seqshape.data.kitti import KittiTrackingSequence
+from seqshape.data.sequence import parse_classes
+from seqshape.errors import ConfigError, DataError, SeqshapeError
 
 if TYPE_CHECKING:
     from seqshape.model.offline import OfflineConfig
@@ -66,22 +81,21 @@ class LabelConfig:
     order: occlusion rule of :func:`seqshape.amodal.masks.resolve_occlusion`.
     alpha: alpha of the alpha shapes (None = automatic).
     classes: seqshape vehicle classes labelled in the gt modes (None: all of
-        :data:`~seqshape.data.sequence.VEHICLE_CLASSES`; KITTI Car, Van and Truck).
+        :data:`~seqshape.data.categories.VEHICLE_CLASSES`; KITTI Car, Van and Truck).
     instances: COCO instance masks for sc-seg (default ``ROOT/instances_2d/<log>.json``).
     crop: how the gt modes cut each vehicle out of its sweeps
         (:class:`~seqshape.data.crop.CropConfig`; default: box + 0.2 m margin, minus what lies
         less than 0.2 m above a locally fitted ground plane).
     polygons: write the segmentations as polygons (outer contours,
-        :func:`~seqshape.amodal.kins.mask_to_polygons`) instead of RLE.
+        :func:`~seqshape.data.kins.mask_to_polygons`) instead of RLE.
     min_points: sc-seg instances with fewer segmented points are dropped.
     gate: sc-seg association gate (m).
     min_visible_area: instances whose predicted visible mask is smaller (pixels) are not
         labelled (KINS annotates what can be seen). The scene generator keeps instances with
         at least 20 visible pixels of the exact masks; the predicted visible area is itself an
         estimate (a slightly small or misplaced shape of a heavily occluded car loses most of
-        its few visible pixels), so the labeler keeps a margin below that rule: on the
-        kitti-like scenes sc-gt missed 1.71 % of the reference cars with 20 and 0.98 % with 10
-        (docs/results.md).
+        its few visible pixels), so the labeler keeps a margin below that rule (measured:
+        docs/results.md, "Amodal labels").
     fit_box: sc-gt only: stretch each estimated shape to its ground-truth box and place it at
         the box pose (:func:`seqshape.amodal.refine.fit_to_box`).
     fit_box_below: sc-gt: tracks whose best estimate fused fewer than this many LiDAR points
@@ -150,8 +164,6 @@ class LabelConfig:
         if self.fit_box_below < 0:
             raise ConfigError(f"fit_box_below must be >= 0, got {self.fit_box_below}")
         if self.classes is not None:
-            from seqshape.data.sequence import parse_classes
-
             self.classes = parse_classes(self.classes)
 
 
@@ -168,15 +180,11 @@ class LabelResult:
 
 
 def load_estimator(checkpoint: str | None):
-    """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped one)."""
-    from seqshape.model.estimator import Estimator
+    """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped sequential
+    one): :meth:`seqshape.model.estimator.Estimator.load`."""
+    from seqshape.model.estimator import Estimator  # lazy: torch (modes without a network)
 
-    if checkpoint in (None, "pretrained"):
-        return Estimator.from_pretrained("sequential")
-    path = Path(checkpoint)
-    if not path.is_file():
-        raise ConfigError(f"--checkpoint {checkpoint}: no such file")
-    return Estimator.from_checkpoint(path)
+    return Estimator.load("pretrained" if checkpoint is None else checkpoint)
 
 
 class TrackReplay:
@@ -200,8 +208,6 @@ class TrackReplay:
             self.cursor.pop(track_id, None)
 
     def step(self, track_ids, point_lists, **_hints) -> list:
-        from seqshape.errors import SeqshapeError
-
         out = []
         for sid, pts in zip(track_ids, point_lists, strict=True):
             base, _, tag = str(sid).rpartition("/")
@@ -221,7 +227,7 @@ class TrackReplay:
 def _has_network(estimator) -> bool:
     """Whether ``estimator`` is a :class:`~seqshape.model.Estimator` (offline estimation runs
     its network; anything else, e.g. a test double, is stepped online)."""
-    from seqshape.model.estimator import Estimator
+    from seqshape.model.estimator import Estimator  # lazy: torch (modes without a network)
 
     return isinstance(estimator, Estimator)
 
@@ -230,7 +236,7 @@ def offline_replay(estimator, inputs, log=None, config=None) -> TrackReplay:
     """Every track of ``inputs`` estimated offline (:func:`seqshape.model.offline
     .estimate_track`, with the tracks' ego poses and the log's timestamps when known), ready
     to be replayed by :func:`seqshape.amodal.refine.complete_tracks`."""
-    from seqshape.model.offline import estimate_track
+    from seqshape.model.offline import estimate_track  # lazy: torch (modes without a network)
 
     estimates = {}
     for inp in inputs:
@@ -257,9 +263,6 @@ def gt_track_inputs(log, classes=None, crop: CropConfig | None = None):
     """The log's vehicle tracks (:func:`seqshape.data.extract.extract_tracks`, ``classes``
     default all, ``crop`` default :class:`CropConfig`) and the matching :class:`TrackInput`
     list (with the tracks' ego poses when the log has them: the offline estimates use them)."""
-    from seqshape.data.extract import extract_tracks
-    from seqshape.data.sequence import CLASS_TO_KINS
-
     tracks = extract_tracks(log, classes=classes, crop=crop)
     ids = label_ids(t.meta["object_id"] for t in tracks)
     inputs = [TrackInput(t.track_id, list(t.meta["frames"]), t.points, t.poses,
@@ -308,8 +311,6 @@ def open_sequence(root, sequence, max_frames: int | None = None):
     ``max_frames`` frames (:meth:`~seqshape.data.sequence.DrivingLog.restrict`): everything
     downstream (track extraction, segmentation, masks) sees a shorter sequence, so a track is
     estimated from its first frame within the subset."""
-    from seqshape.data.kitti import KittiTrackingSequence
-
     return KittiTrackingSequence(root, sequence).restrict(max_frames)
 
 
@@ -337,8 +338,6 @@ def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict):
     t0 = time.perf_counter()
     extra = None
     if cfg.mode == "sc-seg":
-        from seqshape.amodal.association import segment_sequence
-
         inst_path = Path(cfg.instances) if cfg.instances else (
             Path(log.root) / "instances_2d" / f"{log.name}.json")
         unsupported: dict | None = {} if cfg.mask_fallback else None
@@ -410,8 +409,6 @@ def mask_only_labels(log, unsupported: dict, camera: str | None = None
     (:mod:`seqshape.amodal.fallback`) of the 2D instances without LiDAR support
     (``{frame: [(mask, coco annotation, ground plane)]}``, from
     :func:`~seqshape.amodal.association.segment_sequence`) seen by ``camera``."""
-    from seqshape.amodal.fallback import mask_instance
-
     out: dict[int, list[tuple[InstanceMask, int]]] = {}
     for frame in sorted(unsupported):
         cam = log.camera(camera, frame)
@@ -429,8 +426,6 @@ def render_labels(log, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
     """Masks and KINS records of every frame of ``log`` in ``camera`` (default: the log's
     default) from the completed clouds, plus the ``extra`` instances made otherwise
     (:func:`mask_only_labels`; no ``track_id``)."""
-    from seqshape.amodal.kins import image_entry, kins_annotation, occlusion_order
-
     camera = check_camera(log, camera)
     images, anns, masks = [], [], {}
     # track id -> frame -> (RLE of its 2D mask, position of the frame in the track)
@@ -472,8 +467,6 @@ def _guides(items: dict, frame: int, mask_index: dict
             ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """``({track_id: (h, w) bool}, {track_id: (M, 3)})``: the 2D instance mask of each track of
     ``frame`` that has one, and that track's own segmented points of the frame."""
-    from seqshape.amodal.kins import rle_to_mask
-
     masks, points = {}, {}
     for tid, (_, inp) in items.items():
         hit = mask_index.get(tid, {}).get(frame)
@@ -485,23 +478,19 @@ def _guides(items: dict, frame: int, mask_index: dict
 
 def write_labels(path, result: LabelResult) -> None:
     """Write the KINS JSON of a :class:`LabelResult` (categories: KINS's plus bus 9 and
-    trailer 10, :data:`~seqshape.amodal.kins.KINS_CATEGORIES`)."""
-    from seqshape.amodal.kins import write_kins
-
+    trailer 10, :data:`~seqshape.data.categories.KINS_CATEGORIES`)."""
     write_kins(path, result.images, result.annotations)
 
 
 def _colour(k: int) -> tuple[int, int, int]:
     """A distinct BGR colour per index (golden-ratio hues)."""
-    import colorsys
-
     r, g, b = colorsys.hsv_to_rgb((k * 0.618034) % 1.0, 0.85, 1.0)
     return int(255 * b), int(255 * g), int(255 * r)
 
 
 def draw_overlay(image: np.ndarray, insts: list[InstanceMask]) -> np.ndarray:
     """The BGR ``image (h, w, 3)`` with visible masks tinted, amodal outlines and order ranks."""
-    import cv2
+    import cv2  # lazy: OpenCV is heavy and only the overlays need it
 
     out = image.copy()
     for k, m in enumerate(sorted(insts, key=lambda m: -m.order)):  # back to front
@@ -520,9 +509,7 @@ def draw_overlay(image: np.ndarray, insts: list[InstanceMask]) -> np.ndarray:
 def write_overlays(log, result: LabelResult, out_dir, frames=None) -> list[Path]:
     """Overlay PNGs ``OUT/<log>_FFFFFF.png`` of ``result``'s camera (the image, or black when
     absent); returns the paths."""
-    import cv2
-
-    from seqshape._io import atomic_write_bytes
+    import cv2  # lazy: OpenCV is heavy and only the overlays need it
 
     out_dir = Path(out_dir)
     camera = check_camera(log, result.camera)

@@ -30,7 +30,9 @@ import networkx as nx
 import numpy as np
 from scipy.spatial import cKDTree
 
+from seqshape.amodal.align import align_instances
 from seqshape.amodal.alpha import alpha_shape_mask
+from seqshape.camera import as_camera
 
 ORDERS = ("pixel", "median")
 MIN_DEPTH = 0.5  # m in front of the camera; nearer points are dropped before projecting
@@ -60,8 +62,6 @@ def project_cloud(points, camera, image_size=None, min_depth: float = MIN_DEPTH)
 
     Points nearer than ``min_depth`` metres in front of the camera are dropped.
     """
-    from seqshape.camera import as_camera
-
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
         return np.zeros((0, 2)), np.zeros(0)
@@ -191,8 +191,6 @@ def frame_masks(clouds: dict[str, np.ndarray], camera, image_size: tuple[int, in
                 insts.append(m)
     insts = resolve_occlusion(insts, order=order)
     if align is not None and guides:
-        from seqshape.amodal.align import align_instances
-
         pix = {tid: project_cloud(p, camera, image_size, min_depth=min_depth)[0]
                for tid, p in (guide_points or {}).items()}
         if align_instances(insts, guides, align, pix):

@@ -18,7 +18,7 @@ that frame's sensor frame:
   bidirectional pose estimate or its 180-degree flip, whichever places it closer (Chamfer) to
   the frame's own completed cloud.
 * ``"smooth"``: as ``"backfill"``, but without ground-truth poses the best shape is placed
-  with the track's smoothed poses (:mod:`seqshape.amodal.smooth`: a robust local fit of the
+  with the track's smoothed poses (:mod:`seqshape.model.smooth`: a robust local fit of the
   bidirectional pose estimates in the world frame given by the ego poses, heading from the
   motion of moving vehicles; frames without points are not fitted but get the fit's pose at
   their time). With ground-truth poses it equals ``"backfill"``.
@@ -46,6 +46,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+from seqshape.model.smooth import smooth_track_poses
 
 REFINE_MODES = ("none", "bidirectional", "backfill", "smooth")
 
@@ -137,8 +138,6 @@ def _backfill(track: TrackInput, fwd: Completion, bwd: Completion, bi: Completio
     clouds, poses = [], np.zeros_like(bi.poses)
     smoothed = None
     if smooth and (track.poses is None or not np.all(np.isfinite(track.poses))):
-        from seqshape.amodal.smooth import smooth_track_poses
-
         valid = np.array([len(p) > 0 for p in track.points])
         smoothed = smooth_track_poses(bi.poses, track.frames, track.ego, valid=valid)
     for t in range(len(track.frames)):

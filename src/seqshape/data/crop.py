@@ -13,14 +13,10 @@ cut the same way:
    bottom. So a slope, a camber or a box drawn a little too low or too high does not matter;
    points less than ``ground_threshold`` m above that plane are dropped. The vehicle's own
    lower body (sills, wheels, bumpers: many points in a broadside view) is excluded from the
-   fit, and the band keeps out the bonnets and sills of the neighbours (measured on the
-   Argoverse 2 development log: with the footprint and a band of 1 m below to 0.5 m above, the
-   plane landed on the car's sills on 3 of 44 cars and cut up to a fifth of their points).
-   ``ground_threshold`` = 0.15 m: on that log the road returns in the margin around the boxes
-   lie within 0.05 m of the fitted plane (3 of 566 between 0.10 and 0.15 m, 4 between 0.15 and
-   0.20), while a cut at 0.20 m drops the lowest vehicle returns (tyres, bumpers: 100 points
-   between 0.15 and 0.20 m inside the footprints); on the synthetic kitti-like scenes 0.15 m
-   labels as the former box-bottom cut did (docs/amodal.md). With too few surrounding points (fewer than ``min_ground_points``)
+   fit, and the band keeps out the bonnets and sills of the neighbours. ``ground_threshold`` =
+   0.15 m keeps the road returns out and the lowest vehicle returns (tyres, bumpers) in. Both
+   choices were measured on the Argoverse 2 development log (docs/results.md, "Figures behind
+   defaults in the code"). With too few surrounding points (fewer than ``min_ground_points``)
    the sweep's own ground plane is used when the caller has one, else a cut at the box bottom
    plus ``box_ground``. ``ground="box"`` always cuts at the box bottom (the former rule);
    ``ground="none"`` keeps everything.
@@ -34,7 +30,7 @@ import numpy as np
 
 from seqshape.data.ground import _fit_plane, _ransac_plane
 from seqshape.errors import ConfigError
-from seqshape.geometry import sensor_to_canonical
+from seqshape.geometry import points_in_box, sensor_to_canonical
 
 GROUND_MODES = ("plane", "box", "none")
 
@@ -136,3 +132,24 @@ def crop_vehicle(points, pose, size, cfg: CropConfig = CropConfig(),
     else:
         above = local[inbox, 2] >= -size[2] / 2 + cfg.box_ground
     return np.ascontiguousarray(cand[above], dtype=np.float32)
+
+
+def crop_box(points, pose, size, margin: float = 0.2, ground: float | None = 0.15) -> np.ndarray:
+    """Points ``(N, 3+)`` inside a posed box enlarged by ``margin`` (m), as ``(M, 3)`` float32.
+
+    With ``ground`` set, points lower than the box bottom + ``ground`` (in the box's own
+    frame) are dropped: the road under the wheels. The former KITTI crop, kept for callers
+    that want a plain box cut; track extraction and the labeller use :func:`crop_vehicle`
+    (ground by a locally fitted plane).
+    """
+    pts = np.asarray(points)[:, :3]
+    pose = np.asarray(pose, dtype=np.float64)
+    reach = float(np.hypot(size[0] / 2 + margin, size[1] / 2 + margin))  # cheap x, y pre-filter
+    idx = np.flatnonzero((np.abs(pts[:, 0] - pose[0]) <= reach)
+                         & (np.abs(pts[:, 1] - pose[1]) <= reach))
+    cand = pts[idx]
+    keep = points_in_box(cand, size, pose, margin)
+    if ground is not None and keep.any():
+        local_z = sensor_to_canonical(cand.astype(np.float64), pose)[:, 2]
+        keep &= local_z >= -float(size[2]) / 2 + ground
+    return np.ascontiguousarray(cand[keep], dtype=np.float32)

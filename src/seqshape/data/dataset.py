@@ -10,14 +10,16 @@ Manifest format ``seqshape-tracks`` version 1 (docs/data-format.md)::
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from seqshape._io import atomic_write_json
+from seqshape._version import __version__
 from seqshape.data.track import Track, load_track, save_track
-from seqshape.errors import DataError
+from seqshape.errors import ConfigError, DataError
 
 MANIFEST = "manifest.json"
 DATASET_FORMAT = "seqshape-tracks"
@@ -132,9 +134,6 @@ def check_folder_settings(out: Path, config_file: str, cfg: dict, made: str) -> 
     ``made`` says how the folder's tracks were made, for the message ("generated", "extracted").
     A folder with tracks but no settings file is refused too.
     """
-    from seqshape._io import atomic_write_json
-    from seqshape.errors import ConfigError
-
     path = Path(out) / config_file
     if path.is_file():
         try:
@@ -155,8 +154,6 @@ def check_folder_settings(out: Path, config_file: str, cfg: dict, made: str) -> 
 
 def _unit_hash(text: str) -> float:
     """A stable number in [0, 1) from ``text`` (first 8 bytes of its SHA-1)."""
-    import hashlib
-
     return int.from_bytes(hashlib.sha1(text.encode()).digest()[:8], "big") / 2.0**64
 
 
@@ -168,8 +165,6 @@ def manifest_entry(track: Track, file: str) -> dict[str, Any]:
 def write_manifest(path: str | Path, entries: list[dict], config: dict | None = None,
                    **extra: Any) -> None:
     """Write ``manifest.json`` atomically (entries sorted by track id for stable output)."""
-    from seqshape import __version__
-
     manifest = {"format": DATASET_FORMAT, "version": DATASET_FORMAT_VERSION,
                 "created_by": f"seqshape {__version__}", "config": config or {}, **extra,
                 "tracks": sorted(entries, key=lambda e: e["track_id"])}

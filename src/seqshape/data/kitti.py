@@ -30,15 +30,22 @@ from pathlib import Path
 
 import numpy as np
 
+import seqshape.data.crop as _crop
+from seqshape._deprecated import forward
 from seqshape._io import atomic_write_bytes, atomic_write_text, read_text
 from seqshape.camera import KittiCalib, PinholeCamera, cam_to_velo, read_calib, velo_to_cam
+from seqshape.data.categories import KITTI_CLASSES
 from seqshape.data.crop import CropConfig
+from seqshape.data.extract import extract_tracks as generic_tracks
 from seqshape.data.sequence import Box3D, DrivingLog
 from seqshape.data.track import Track
 from seqshape.errors import ConfigError, DataError
-from seqshape.geometry import points_in_box, sensor_to_canonical, wrap_angle
+from seqshape.geometry import wrap_angle
 
 log = logging.getLogger(__name__)
+
+#: ``crop_box`` moved to :mod:`seqshape.data.crop`; the old path warns for one release.
+__getattr__ = forward(__name__, _crop, ("crop_box",))
 
 FRAME_RATE_HZ = 10.0
 OXTS_COLUMNS = ("lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu",
@@ -348,8 +355,6 @@ def imu_to_velo_poses(imu_poses, calib: KittiCalib) -> np.ndarray:
 # ----------------------------------------------------------------------------- sequences
 
 
-#: KITTI object type -> seqshape vehicle class (other types: not a vehicle)
-KITTI_CLASSES = {"Car": "car", "Van": "van", "Truck": "truck"}
 #: KITTI cameras as :class:`~seqshape.data.sequence.DrivingLog` camera names
 CAMERAS = ("image_02", "image_03")
 
@@ -514,27 +519,6 @@ class KittiTrackingSequence(DrivingLog):
         return sorted(n for n in names if n.isdigit())
 
 
-def crop_box(points, pose, size, margin: float = 0.2, ground: float | None = 0.15) -> np.ndarray:
-    """Points ``(N, 3+)`` inside a posed box enlarged by ``margin`` (m), as ``(M, 3)`` float32.
-
-    With ``ground`` set, points lower than the box bottom + ``ground`` (in the box's own
-    frame) are dropped: the road under the wheels. The former KITTI crop, kept for callers
-    that want a plain box cut; track extraction and the labeller use
-    :func:`seqshape.data.crop.crop_vehicle` (ground by a locally fitted plane).
-    """
-    pts = np.asarray(points)[:, :3]
-    pose = np.asarray(pose, dtype=np.float64)
-    reach = float(np.hypot(size[0] / 2 + margin, size[1] / 2 + margin))  # cheap x, y pre-filter
-    idx = np.flatnonzero((np.abs(pts[:, 0] - pose[0]) <= reach)
-                         & (np.abs(pts[:, 1] - pose[1]) <= reach))
-    cand = pts[idx]
-    keep = points_in_box(cand, size, pose, margin)
-    if ground is not None and keep.any():
-        local_z = sensor_to_canonical(cand.astype(np.float64), pose)[:, 2]
-        keep &= local_z >= -float(size[2]) / 2 + ground
-    return np.ascontiguousarray(cand[keep], dtype=np.float32)
-
-
 def kitti_classes(types) -> tuple[str, ...]:
     """KITTI types (``("Car", "Van")``) -> seqshape classes; a type without one is an error."""
     bad = [t for t in types if t not in KITTI_CLASSES]
@@ -555,11 +539,9 @@ def extract_tracks(seq: KittiTrackingSequence, classes=("car", "van"),
     adds ``sequence``, ``kitti_track_id`` (int) and ``type`` (the KITTI type) to the generic
     keys (``frames``, ``ego_poses`` when oxts cover the track's frames, ...).
     """
-    from seqshape.data.extract import extract_tracks as generic
-
     if types is not None:
         classes = kitti_classes(types)
-    tracks = generic(seq, classes=classes, crop=crop, min_points=min_points)
+    tracks = generic_tracks(seq, classes=classes, crop=crop, min_points=min_points)
     for tr in tracks:
         tr.meta.update(sequence=seq.sequence, kitti_track_id=int(tr.meta["object_id"]),
                        type=tr.meta["category"])

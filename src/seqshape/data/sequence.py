@@ -22,7 +22,9 @@ Frames and units (docs/architecture.md):
   (Argoverse 2) or keyframes (nuScenes). ``timestamp(frame)`` is in seconds.
 
 Vehicle classes: each dataset category maps to one of :data:`VEHICLE_CLASSES` or to None
-(not a vehicle). ``Box3D.category`` keeps the dataset's own name.
+(not a vehicle). ``Box3D.category`` keeps the dataset's own name. The class names and their KINS
+ids (``VEHICLE_CLASSES``, ``CLASS_TO_KINS``, re-exported here) are defined once, in
+:mod:`seqshape.data.categories`.
 """
 
 from __future__ import annotations
@@ -35,15 +37,9 @@ from pathlib import Path
 import numpy as np
 
 from seqshape.camera import PinholeCamera
+from seqshape.data.categories import CLASS_TO_KINS as CLASS_TO_KINS  # re-exported
+from seqshape.data.categories import VEHICLE_CLASSES
 from seqshape.errors import ConfigError
-
-#: seqshape's vehicle classes, smallest first.
-VEHICLE_CLASSES = ("car", "van", "truck", "bus", "trailer")
-
-#: KINS category ids written by the labeller for each class (KINS defines car 4, truck 6,
-#: van 7, misc 8; bus and trailer have no KINS id and get ids of their own, listed in the
-#: ``categories`` of every file written).
-CLASS_TO_KINS = {"car": 4, "van": 7, "truck": 6, "bus": 9, "trailer": 10}
 
 
 def parse_classes(text: str | Iterable[str] | None) -> tuple[str, ...]:

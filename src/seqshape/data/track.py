@@ -28,6 +28,7 @@ import numpy as np
 
 from seqshape._io import atomic_save_npz
 from seqshape.errors import DataError
+from seqshape.geometry import canonical_to_sensor
 
 TRACK_FORMAT_VERSION = 1
 _REQUIRED = ("points", "offsets", "poses", "timestamps", "size", "meta")
@@ -77,8 +78,6 @@ class Track:
 
     def complete_in_frame(self, t: int) -> np.ndarray:
         """The complete shape placed in frame ``t``'s sensor frame, ``(M, 3)`` float32."""
-        from seqshape.geometry import canonical_to_sensor
-
         if self.complete is None:
             raise ValueError(f"track {self.track_id} has no complete shape")
         return canonical_to_sensor(self.complete, self.poses[t])

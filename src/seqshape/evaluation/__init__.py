@@ -1,7 +1,10 @@
 """Evaluation of shape and pose estimates: metrics, the per-frame runner, reports, plots.
 
-See docs/evaluation.md for exactly what is computed. Heavy modules (plots, html) are imported
-only when used.
+See docs/evaluation.md for exactly what is computed. :mod:`seqshape.evaluation.evaluate`
+(``evaluate_dataset``, ``evaluate_to``) runs ``seqshape evaluate``: the methods, the scores and
+every output file; it loads the networks, so it is not imported here: this package stays
+torch-free for the EMD worker processes. Heavy third-party modules (matplotlib, plotly) are
+imported only when used.
 """
 
 from seqshape.evaluation.metrics import (

@@ -17,6 +17,7 @@ import numpy as np
 
 from seqshape._io import atomic_write_text
 from seqshape.data import Track
+from seqshape.errors import require
 from seqshape.evaluation.metrics import subsample
 from seqshape.evaluation.runner import EstimatorLike, predict_track
 from seqshape.geometry import box_corners, sensor_to_canonical
@@ -88,8 +89,6 @@ def track_figure(track: Track, predictions: Mapping[str, tuple[range, list]],
     ``predictions``: method -> ``(frames, estimates)`` as returned by
     :func:`~seqshape.evaluation.runner.predict_track` (all methods over the same frames).
     """
-    from seqshape.errors import require
-
     go = require("plotly.graph_objects", "the HTML track view", "plotly")
     frames, _ = next(iter(predictions.values()))
     stride = max(1, int(np.ceil(len(frames) / max_frames)))

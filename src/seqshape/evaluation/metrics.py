@@ -54,6 +54,9 @@ def nearest_distances(a, b) -> np.ndarray:
     """For each point of ``a (N, 3)``, the Euclidean distance to its nearest point of ``b (M, 3)``.
 
     Returns ``(N,)`` float64 (metres).
+
+    >>> nearest_distances([[0.0, 0, 0], [3, 0, 0]], [[0.0, 1, 0], [3, 0, 2]])
+    array([1., 2.])
     """
     a = _validate_cloud(a, "a")
     b = _validate_cloud(b, "b")
@@ -135,7 +138,13 @@ def emd_batch(pairs: list[tuple[np.ndarray, np.ndarray]]) -> list[float]:
 
 
 def translation_error(pose_pred, pose_gt) -> np.ndarray | float:
-    """Planar distance ``|(x, y)_pred - (x, y)_gt|`` in metres; poses ``(..., 4)`` -> ``(...)``."""
+    """Planar distance ``|(x, y)_pred - (x, y)_gt|`` in metres; poses ``(..., 4)`` -> ``(...)``.
+
+    The height and the yaw do not count:
+
+    >>> translation_error([3.0, 4.0, 9.0, 1.0], [0.0, 0.0, 0.0, 0.0])
+    5.0
+    """
     p = np.asarray(pose_pred, dtype=np.float64)
     g = np.asarray(pose_gt, dtype=np.float64)
     d = np.hypot(p[..., 0] - g[..., 0], p[..., 1] - g[..., 1])

@@ -16,17 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
-from seqshape.evaluation.report import LABELS, METRICS, REAL_CD_LABEL
+from seqshape.evaluation.report import LABELS, METRICS, REAL_CD_LABEL, floor_summary
 from seqshape.evaluation.runner import EvalResult
 
 COLORS = {"sequential": "tab:blue", "baseline": "tab:orange", "boxfit": "tab:green"}
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # heavy: plotting only
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # heavy: plotting only
 
     return plt
 
@@ -56,8 +56,6 @@ def _detection_edges(n_det: np.ndarray, max_bins: int) -> np.ndarray:
 
 
 def _floor_cm(result: EvalResult) -> float | None:
-    from seqshape.evaluation.report import floor_summary
-
     methods = result.methods
     ref = "sequential" if "sequential" in methods else methods[0]
     return floor_summary(result, ref)["cd_floor_cm"]

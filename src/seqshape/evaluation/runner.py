@@ -63,6 +63,7 @@ from seqshape.evaluation.metrics import (
     subsample_pair,
 )
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+from seqshape.vehicles import procedural_vehicle, sample_outer_surface
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +118,7 @@ def track_hints(est, tracks: Sequence[Track], frames: Sequence[int]) -> dict:
     whose sensor is static; none for real tracks without ego motion). Never the true box size:
     it would hand the network the length it is scored on. Other estimators (the box fit, test
     doubles) get nothing."""
+    # lazy: torch; the EMD worker processes (spawned) import this module and need no torch
     from seqshape.model.estimator import Estimator
 
     if not isinstance(est, Estimator):
@@ -219,10 +221,6 @@ def surface_resampler(track: Track):
     source = next((v for v in values if isinstance(v, str) and v.startswith("procedural:")),
                   None)
     if source is None:
-        return None
-    try:
-        from seqshape.vehicles import procedural_vehicle, sample_outer_surface
-    except ImportError:
         return None
     if source not in _mesh_cache:
         _, kind, vseed = source.split(":", 2)

@@ -51,6 +51,7 @@ import numpy as np
 
 from seqshape.errors import ConfigError, require
 from seqshape.model.estimator import Estimate
+from seqshape.testing import box_surface
 
 METHODS = ("lshape", "min_area_rect")
 CRITERIA = ("closeness", "variance")
@@ -161,18 +162,9 @@ def fit_min_area_rect(xy) -> Rectangle:
 
 
 def box_surface_points(size, pose, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` points uniform on the surface of a posed box ``size (l, w, h)``, ``pose (4,)``."""
-    from seqshape.geometry import canonical_to_sensor
-
-    size = np.maximum(np.asarray(size, dtype=np.float64), 0.0)
-    ln, w, h = size
-    areas = np.array([w * h, w * h, ln * h, ln * h, ln * w, ln * w])
-    p = areas / areas.sum() if areas.sum() > 0 else np.full(6, 1 / 6)
-    face = rng.choice(6, n, p=p)
-    u = rng.uniform(-0.5, 0.5, (n, 3)) * size
-    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3, strict=True)):
-        u[face == i, axis] = sign * size[axis] / 2
-    return canonical_to_sensor(u, pose).astype(np.float32)
+    """``n`` points uniform on the surface of a posed box ``size (l, w, h)``, ``pose (4,)``
+    (float32; :func:`seqshape.testing.box_surface`, the one box sampler)."""
+    return box_surface(n, rng, size, pose=pose, dtype=np.float32)
 
 
 @dataclass

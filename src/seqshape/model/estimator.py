@@ -1,9 +1,12 @@
 """Streaming inference: :class:`Estimator` keeps one hidden state per live track.
 
->>> est = Estimator.from_checkpoint("run/model.pt")            # doctest: +SKIP
->>> out = est.step(["car7", "car9"], [points_a, points_b])    # doctest: +SKIP
->>> out[0].complete.shape, out[0].pose                         # doctest: +SKIP
-((1024, 3), array([12.1, -3.4, -0.9, 0.31]))
+>>> from seqshape.testing import box_surface
+>>> est = Estimator.from_pretrained("sequential")  # or .from_checkpoint("run/model.pt")
+>>> points_a = box_surface(300, 0, pose=(12.0, -3.0, -0.9, 0.3), dtype=np.float32)
+>>> points_b = box_surface(200, 1, pose=(20.0, 4.0, -0.9, -1.2), dtype=np.float32)
+>>> out = est.step(["car7", "car9"], [points_a, points_b])
+>>> out[0].track_id, out[0].complete.shape, out[0].pose.shape  # pose: (x, y, z, yaw)
+('car7', (1024, 3), (4,))
 
 Optional per-track inputs of :meth:`Estimator.step` (all default to None = unknown):
 ``sizes`` (a tracker's / annotator's box (l, w, h) or a length; sets the input scale of a
@@ -19,6 +22,10 @@ Weight files (checkpoints and exported ``model.pt``) are plain dicts read with
      "model_config": {...}, "train_config": {...}, "state_dict": {...}, "metrics": {...}}
 
 (training checkpoints add a "training" entry with the optimiser and RNG states).
+
+One loader: :meth:`Estimator.load` takes a shipped name (``"sequential"``, ``"baseline"``, or
+``"pretrained"`` with a ``kind``) or the path of a weights file; :func:`resolve_weights` is the
+one place that turns such a spec into a file (training's ``--init`` uses it too).
 """
 
 from __future__ import annotations
@@ -45,10 +52,48 @@ CHECKPOINT_FORMAT = "seqshape-checkpoint"
 CHECKPOINT_VERSION = 1
 KINDS = ("sequential", "baseline")
 PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
+#: The spec of the shipped weights of a given kind (``--init pretrained``, ``--checkpoint
+#: pretrained``).
+PRETRAINED = "pretrained"
 #: A class hint's floor on the vehicle length (m) used for the input scale when no size is
 #: given: about the short end of each class (the points' running extent raises it). Only the
 #: classes longer than ``ModelConfig.scale_ref`` change anything.
 CLASS_MIN_LENGTH = {"car": 3.5, "van": 4.5, "truck": 6.5, "bus": 10.0, "trailer": 7.0}
+
+
+def pretrained_path(kind: str) -> Path:
+    """The shipped weights ``seqshape/pretrained/<kind>.pt``.
+
+    Raises :class:`ConfigError` for an unknown kind and :class:`DataError` when the file is not
+    installed.
+    """
+    if kind not in KINDS:
+        raise ConfigError(f"unknown pretrained model {kind!r}; choose from {KINDS}")
+    path = PRETRAINED_DIR / f"{kind}.pt"
+    if not path.is_file():
+        raise DataError(path, f"shipped {kind} weights are missing from this installation; "
+                              f"train them with `seqshape train --model {kind}` and pass the "
+                              f"run's model.pt (RUN/model.pt) instead")
+    return path
+
+
+def resolve_weights(spec: str | Path, kind: str = "sequential") -> Path:
+    """The weights file named by ``spec``: the one resolver of "shipped name or path".
+
+    ``spec`` is ``"pretrained"`` (the shipped weights of ``kind``), a shipped name
+    (``"sequential"`` or ``"baseline"``), or the path of an exported ``model.pt`` or a training
+    checkpoint (a :class:`DataError` when there is no such file). The file itself is read and
+    checked by :func:`read_model_file`.
+    """
+    name = str(spec)
+    if name == PRETRAINED:
+        return pretrained_path(kind)
+    if name in KINDS:
+        return pretrained_path(name)
+    path = Path(spec)
+    if not path.is_file():
+        raise DataError(path, "weights file not found")
+    return path
 
 
 def read_model_file(path: str | Path) -> dict[str, Any]:
@@ -162,15 +207,29 @@ class Estimator:
                         seed: int = 0, heading: HeadingConfig | None = None,
                         frame_period: float = DEFAULT_FRAME_PERIOD) -> Estimator:
         """The shipped weights ``seqshape/pretrained/<kind>.pt``."""
-        if kind not in KINDS:
-            raise ConfigError(f"unknown pretrained model {kind!r}; choose from {KINDS}")
-        path = PRETRAINED_DIR / f"{kind}.pt"
-        if not path.is_file():
-            raise DataError(path, f"shipped {kind} weights are missing from this installation; "
-                                  f"train them with `seqshape train --model {kind}` and use "
-                                  f"Estimator.from_checkpoint(RUN/model.pt)")
-        return cls.from_checkpoint(path, threads=threads, seed=seed, heading=heading,
-                                   frame_period=frame_period)
+        return cls.from_checkpoint(pretrained_path(kind), threads=threads, seed=seed,
+                                   heading=heading, frame_period=frame_period)
+
+    @classmethod
+    def load(cls, spec: str | Path, *, kind: str | None = None, threads: int | None = None,
+             device: str = "cpu", seed: int = 0, heading: HeadingConfig | None = None,
+             frame_period: float = DEFAULT_FRAME_PERIOD) -> Estimator:
+        """The estimator named by ``spec``: a shipped name or a weights path.
+
+        ``spec``: ``"sequential"`` / ``"baseline"`` (the shipped weights), ``"pretrained"``
+        (the shipped weights of ``kind``, sequential by default), or the path of an exported
+        ``model.pt`` or a training checkpoint (read with ``weights_only=True``: a pickle is
+        refused). ``kind``, when given, must be the kind of the weights loaded
+        (:class:`ConfigError` otherwise). The other arguments are those of the constructor.
+
+        >>> Estimator.load("pretrained", kind="baseline").kind
+        'baseline'
+        """
+        path = resolve_weights(spec, kind or "sequential")
+        est = cls.from_checkpoint(path, device, threads, seed, heading, frame_period)
+        if kind is not None and est.kind != kind:
+            raise ConfigError(f"{spec} holds a {est.kind} model, not a {kind} one")
+        return est
 
     @property
     def recurrent(self) -> bool:

@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from seqshape.model.config import ModelConfig
+from seqshape.model.transforms import place_points
 
 #: Time step (s) assumed between consecutive frames of a track when no timestamps are given
 #: (10 Hz, the usual rotating-LiDAR rate).
@@ -321,11 +322,7 @@ class ShapePoseNet(nn.Module):
             return out + mean.unsqueeze(-2)
         if pose is None:
             pose = self.decode_pose(h, mean, scale)
-        c, s = torch.cos(pose[..., 3:4]), torch.sin(pose[..., 3:4])  # (..., 1)
-        x = c * out[..., 0] - s * out[..., 1]
-        y = s * out[..., 0] + c * out[..., 1]
-        placed = torch.stack([x, y, out[..., 2]], dim=-1)  # (..., K, 3)
-        return placed + pose[..., :3].unsqueeze(-2)
+        return place_points(out, pose)  # (..., K, 3)
 
     def decode_pose(self, h: torch.Tensor, mean: torch.Tensor,
                     scale: torch.Tensor | None = None) -> torch.Tensor:

@@ -18,7 +18,7 @@ pieces (docs/model.md, section "Offline mode", has their measured figures):
   directions' centres, and their yaws when they agree within 90 degrees, averaged with
   weights the detections each has seen).
 * ``smooth``: the poses smoothed along the whole track in the fixed frame of the ego poses
-  (:func:`seqshape.amodal.smooth.smooth_track_poses`: robust local quadratic fit of the
+  (:func:`seqshape.model.smooth.smooth_track_poses`: robust local quadratic fit of the
   centres, heading from the motion of a moving vehicle, else the track's axial mean yaw).
 * ``heading``: make the yaw consistent along the whole track in a fixed frame (needs ego
   poses, or a static sensor): the motion direction over a window centred on each frame (both
@@ -37,10 +37,14 @@ large frames, same input scale, same heading step). On a track of one frame ever
 configuration equals the online estimate. The per-frame baseline has no state to share
 between frames: for it offline equals online.
 
->>> est = Estimator.from_pretrained("sequential")                      # doctest: +SKIP
->>> out = estimate_track(est, [pts0, pts1, pts2], ego_poses=egos)       # doctest: +SKIP
->>> out[0].pose                                                        # doctest: +SKIP
-array([12.1, -3.4, -0.9, 0.31])
+>>> from seqshape.model import Estimator
+>>> from seqshape.testing import box_surface
+>>> est = Estimator.from_pretrained("sequential")
+>>> frames = [box_surface(200, t, pose=(12.0 + 0.5 * t, -3.0, -0.9, 0.0), dtype=np.float32)
+...           for t in range(3)]  # a car driving along x, static sensor
+>>> out = estimate_track(est, frames, ego_poses=[np.eye(4)] * 3)
+>>> len(out), out[0].complete.shape, out[0].pose.shape
+(3, (1024, 3), (4,))
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ from seqshape.model.heading import (
     pose_yaw,
     wrap_angle,
 )
+from seqshape.model.smooth import smooth_track_poses
 
 MODES = ("online", "offline")
 SHAPE_SOURCES = ("online", "final", "two-pass", "bidirectional")
@@ -81,7 +86,7 @@ class OfflineConfig:
     """Source of each frame's pose: ``"online"`` or ``"two-pass"``."""
     smooth: bool = True
     """Smooth the poses along the track in the fixed frame of the ego poses (the sensor frame
-    without them) with :func:`seqshape.amodal.smooth.smooth_track_poses` (a robust local
+    without them) with :func:`seqshape.model.smooth.smooth_track_poses` (a robust local
     quadratic fit of the centres; headings from the motion or the track's axial mean)."""
     heading: bool = True
     """Whole-track heading consistency (:func:`consistent_flips`) instead of the online
@@ -216,11 +221,9 @@ def _bidirectional(model, frames: list[np.ndarray], first: dict, size, cls,
 
 def _smooth(poses: np.ndarray, valid: np.ndarray, egos, times: np.ndarray | None
             ) -> np.ndarray:
-    """:func:`seqshape.amodal.smooth.smooth_track_poses` of the poses over the frame index
+    """:func:`seqshape.model.smooth.smooth_track_poses` of the poses over the frame index
     (its window counts frames), at the frame rate of the timestamps (10 Hz without them);
     in the fixed frame of the ego poses when every frame has one."""
-    from seqshape.amodal.smooth import smooth_track_poses
-
     rate = 10.0
     if times is not None and len(times) > 1:
         step = float(np.median(np.diff(times)))

@@ -6,6 +6,15 @@ import argparse
 from pathlib import Path
 
 from seqshape._io import atomic_write_json, atomic_write_text
+from seqshape.amodal.evaluate import (
+    breakdown,
+    breakdown_table,
+    evaluate_files,
+    markdown_table,
+    results_to_records,
+    summarise,
+    within_distance,
+)
 from seqshape.errors import ConfigError
 
 HELP = "score amodal mask labels against a reference (per-image Hungarian matching on IoU)"
@@ -23,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="category ids to score (default: all)")
     parser.add_argument("--max-distance", type=float, default=None, metavar="M",
                         help="also report the metrics over reference instances at most M "
-                             "metres away (matching still uses every instance)")
+                             "metres away (matching still uses every instance; default: no "
+                             "distance limit)")
 
 
 def resolve_pairs(preds: list[Path], gts: list[Path]) -> list[tuple[Path, Path]]:
@@ -53,16 +63,6 @@ def resolve_pairs(preds: list[Path], gts: list[Path]) -> list[tuple[Path, Path]]
 
 
 def run(args: argparse.Namespace) -> int:
-    from seqshape.amodal.evaluate import (
-        breakdown,
-        breakdown_table,
-        evaluate_files,
-        markdown_table,
-        results_to_records,
-        summarise,
-        within_distance,
-    )
-
     pairs = resolve_pairs(args.pred, args.gt)
     results, unmatched = evaluate_files(pairs, args.categories)
     metrics = summarise(results, unmatched)

@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from seqshape._runner import parse_shard
+from seqshape.sim.generate import PRESETS, generate_dataset, preset_config
+from seqshape.sim.sensors import SENSORS
 
 HELP = "generate a synthetic LiDAR track dataset"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from seqshape.sim.generate import PRESETS
-    from seqshape.sim.sensors import SENSORS
-
     parser.add_argument("--preset", choices=sorted(PRESETS), default="tiny",
                         help="tiny: a few short tracks in seconds; paper: 183 vehicles x 11 "
                              "tracks, VLP-16; realistic: paper + ground, occluders, noise; "
@@ -18,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "mixing, ground and clutter, tracker-box crop (docs/generation.md)")
     parser.add_argument("--out", required=True, help="output dataset folder")
     parser.add_argument("--meshes", help="folder of vehicle meshes (OBJ/PLY/STL/OFF/GLB/GLTF) "
-                                         "to use instead of procedural vehicles")
+                                         "to use instead of procedural vehicles (default: none)")
     parser.add_argument("--mesh-up", default=None, help="up axis of --meshes (default z)")
     parser.add_argument("--mesh-forward", default=None,
                         help="forward axis of --meshes (default x)")
@@ -26,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="scale of --meshes to metres (default 1)")
     parser.add_argument("--trajectories", metavar="CSV_OR_DIR",
                         help="drive the vehicles along CSV logs (t,x,y,yaw in the sensor frame) "
-                             "instead of sampled trajectories")
+                             "instead of sampled trajectories (default: none)")
     parser.add_argument("--sensor", choices=sorted(SENSORS), default=None,
                         help="LiDAR preset (default vlp16; with --preset real: one sensor "
                              "instead of the preset's mix)")
@@ -57,8 +59,6 @@ def _lengths(args: argparse.Namespace) -> dict:
     """``mean_frames`` / ``max_frames`` / ``min_frames`` overrides from ``--mean-frames``."""
     if args.mean_frames is None:
         return {}
-    from seqshape.sim.generate import PRESETS
-
     base = PRESETS[args.preset]
     mean = float(args.mean_frames)
     return {"mean_frames": mean, "min_frames": min(base.min_frames, int(mean)),
@@ -66,10 +66,6 @@ def _lengths(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from seqshape.sim.generate import PRESETS, generate_dataset, parse_shard, preset_config
-
     shard = parse_shard(args.shard)
     meshes = str(Path(args.meshes).resolve()) if args.meshes else None
     trajs = str(Path(args.trajectories).resolve()) if args.trajectories else None
@@ -81,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
     config = preset_config(args.preset, n_val_vehicles=n_val, sensor=args.sensor, seed=args.seed,
                            num_points=args.num_points, meshes=meshes, trajectories=trajs,
                            mesh_up=args.mesh_up, mesh_forward=args.mesh_forward,
-                           mesh_scale=args.mesh_scale, library=args.library, placement=args.placement,
+                           mesh_scale=args.mesh_scale, library=args.library,
+                           placement=args.placement,
                            n_vehicles=args.n_vehicles,
                            tracks_per_vehicle=args.tracks_per_vehicle, **_lengths(args))
     s = generate_dataset(config, args.out, workers=args.workers, shard=shard)

@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from seqshape.data import TrackDataset
+from seqshape.errors import ConfigError
+from seqshape.viz import plot_track_png, track_html
 
 HELP = "plot one track (PNG) and an interactive 3D view (HTML)"
 
@@ -16,12 +21,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from seqshape.data import TrackDataset
-    from seqshape.errors import ConfigError
-    from seqshape.viz import plot_track_png, track_html
-
     ds = TrackDataset(args.dataset)
     try:
         track = ds.get(args.track)

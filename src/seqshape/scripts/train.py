@@ -14,6 +14,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+
+from seqshape.errors import ConfigError
+from seqshape.train.config import get_train_config
+from seqshape.train.trainer import Trainer
 
 HELP = "train the sequential model or the per-frame baseline (3 stages, resumable)"
 
@@ -25,9 +30,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-fraction", type=float, nargs="+", default=None, metavar="F",
                         help="with several --data folders: the share of each folder's tracks "
                              "to use, one value per folder in (0, 1] (chosen by a stable hash "
-                             "of the track id), to balance a large dataset against a small one")
+                             "of the track id), to balance a large dataset against a small one "
+                             "(default: all tracks of every folder)")
     parser.add_argument("--out", required=True, help="run folder (checkpoints, logs, model.pt)")
-    parser.add_argument("--model", choices=("sequential", "baseline"), default="sequential")
+    parser.add_argument("--model", choices=("sequential", "baseline"), default="sequential",
+                        help="the recurrent model or the per-frame baseline")
     parser.add_argument("--preset", default="small",
                         help="training preset: small (2 CPU cores), paper (GPU), smoke (tests)")
     parser.add_argument("--resume", action="store_true",
@@ -36,32 +43,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start from these weights (a model.pt, a training checkpoint, or "
                              "'pretrained' = the shipped weights of --model) instead of random "
                              "ones; kind and model config must match; stages with 0 steps "
-                             "(--stage-steps 0,0,N) are skipped")
-    parser.add_argument("--seed", type=int, default=None)
+                             "(--stage-steps 0,0,N) are skipped (default: random weights)")
+    parser.add_argument("--seed", type=int, default=None, help="seed (default: the preset's)")
     parser.add_argument("--stage-steps", default=None, metavar="A,B,C",
-                        help="optimiser steps of stages 1,2,3 (upper bounds with a time budget)")
+                        help="optimiser steps of stages 1,2,3 (upper bounds with a time budget; "
+                             "default: the preset's)")
     parser.add_argument("--time-budget-min", type=float, default=None,
                         help="total wall-clock minutes, split 45/15/40%% over the stages "
-                             "(a budget-limited run is not bit-reproducible)")
+                             "(a budget-limited run is not bit-reproducible; default: no budget)")
     parser.add_argument("--stage-budget-min", default=None, metavar="A,B,C",
-                        help="wall-clock minutes per stage (overrides --time-budget-min)")
-    parser.add_argument("--batch-size", type=int, default=None, help="windows per step")
-    parser.add_argument("--window", type=int, default=None, help="frames per window")
+                        help="wall-clock minutes per stage (overrides --time-budget-min; "
+                             "default: no budget)")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="windows per step (default: the preset's)")
+    parser.add_argument("--window", type=int, default=None,
+                        help="frames per window (default: the preset's)")
     parser.add_argument("--lr", type=float, default=None,
-                        help="learning rate of stages 1 and 2 (stage 3 uses half)")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads per process")
-    parser.add_argument("--val-every", type=int, default=None)
-    parser.add_argument("--ckpt-every", type=int, default=None)
+                        help="learning rate of stages 1 and 2 (stage 3 uses half; default: the "
+                             "preset's)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch threads per process (default: the preset's)")
+    parser.add_argument("--val-every", type=int, default=None,
+                        help="validate every N steps (default: the preset's)")
+    parser.add_argument("--ckpt-every", type=int, default=None,
+                        help="write a checkpoint every N steps (default: the preset's)")
     parser.add_argument("--model-set", action="append", default=[], metavar="FIELD=VALUE",
                         help="override a ModelConfig field of the preset, VALUE in JSON "
                              "(repeatable), e.g. --model-set view_input=true "
                              "--model-set num_complete=2048")
-    parser.add_argument("--no-tensorboard", action="store_true")
+    parser.add_argument("--no-tensorboard", action="store_true",
+                        help="write no TensorBoard logs")
 
 
 def _triple(text: str, name: str, cast):
-    from seqshape.errors import ConfigError
-
     parts = text.split(",")
     try:
         values = tuple(cast(p) for p in parts)
@@ -74,8 +88,6 @@ def _triple(text: str, name: str, cast):
 
 def build_config(args: argparse.Namespace):
     """The :class:`TrainConfig` from a preset and the command-line overrides."""
-    from seqshape.train.config import get_train_config
-
     cfg = get_train_config(args.preset)
     if args.stage_steps:
         cfg = cfg.with_stage_steps(_triple(args.stage_steps, "--stage-steps", int))
@@ -104,10 +116,6 @@ def build_config(args: argparse.Namespace):
 
 
 def _model_sets(items: list[str]) -> dict:
-    import json
-
-    from seqshape.errors import ConfigError
-
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
@@ -121,8 +129,6 @@ def _model_sets(items: list[str]) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from seqshape.train.trainer import Trainer
-
     trainer = Trainer(args.data, args.out, args.model, build_config(args), resume=args.resume,
                       data_fractions=args.data_fraction,
                       init=args.init)

@@ -8,15 +8,25 @@ them for the vehicles it is given. Everything about track ``i`` is drawn from
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
+import seqshape.sim.real as real
 from seqshape.data.dataset import manifest_entry
 from seqshape.data.track import Track, save_track
 from seqshape.errors import DataError
+from seqshape.sim.kinematics import footprint_distance, footprints_overlap
+from seqshape.sim.raycast import scan_track
+from seqshape.sim.sensors import get_sensor, mount_rotation
+from seqshape.sim.traffic import EGO_SIZE
+from seqshape.sim.trajectories import sample_trajectory
+from seqshape.vehicles import sample_outer_surface
+from seqshape.vehicles.fleet import FLEET_KINDS
 
+GENERATOR_VERSION = 1  #: recorded in every generated track's meta and the dataset config
 MIN_CLEARANCE = 1.5      # m between a sampled vehicle's footprint and the sensor
 CSV_MIN_CLEARANCE = 0.5  # m for trajectories read from CSV logs (closer: an error)
 _COMPLETE_TAG = 0xC0_3E7E  # seed-sequence tag of the complete shapes
@@ -67,8 +77,6 @@ _STATE: dict = {}
 
 def init_worker(payload: WorkerPayload) -> None:
     """Install the payload in this process and reset the per-vehicle caches."""
-    from seqshape.sim.sensors import get_sensor
-
     sensor = get_sensor(payload.config.sensor)
     _STATE.clear()
     _STATE.update(payload=payload, meshes={}, complete={},
@@ -80,8 +88,6 @@ def init_worker(payload: WorkerPayload) -> None:
 def _mesh(v: int):
     meshes = _STATE["meshes"]
     if v not in meshes:
-        import trimesh
-
         _, _, _, verts, faces = _STATE["payload"].vehicles[v]
         meshes[v] = trimesh.Trimesh(verts, faces, process=False)
     return meshes[v]
@@ -90,8 +96,6 @@ def _mesh(v: int):
 def _complete(v: int) -> np.ndarray:
     cache = _STATE["complete"]
     if v not in cache:
-        from seqshape.vehicles import sample_outer_surface
-
         cfg = _STATE["payload"].config
         seed = int(np.random.SeedSequence([cfg.seed, _COMPLETE_TAG, v]).generate_state(1)[0])
         cache[v] = sample_outer_surface(_mesh(v), cfg.num_points, seed)
@@ -104,13 +108,11 @@ def _ground_z(mesh, sensor) -> float:
 
 
 def _trajectory(i: int, rng, size):
-    from seqshape.sim import trajectories as tj
-
     cfg, sensor = _STATE["payload"].config, _STATE["sensor"]
     logs = _STATE["payload"].logs
     if logs:
         traj = logs[i % len(logs)]
-        gap = tj.footprint_distance(traj.x, traj.y, traj.yaw, size[0], size[1])
+        gap = footprint_distance(traj.x, traj.y, traj.yaw, size[0], size[1])
         if gap.min() < CSV_MIN_CLEARANCE:
             t = int(np.argmin(gap))
             raise DataError(traj.source, f"vehicle of length {size[0]:.2f} m would overlap the "
@@ -118,7 +120,7 @@ def _trajectory(i: int, rng, size):
                                          f"y={traj.y[t]:.2f}); trajectories are in the sensor "
                                          f"frame and must keep clear of the origin")
         return traj
-    return tj.sample_trajectory(rng, length=size[0], width=size[1], rate_hz=sensor.rate_hz,
+    return sample_trajectory(rng, length=size[0], width=size[1], rate_hz=sensor.rate_hz,
                                 min_distance=cfg.min_distance, max_distance=cfg.max_distance,
                                 min_clearance=MIN_CLEARANCE, min_frames=cfg.min_frames,
                                 max_frames=cfg.max_frames, mean_frames=cfg.mean_frames,
@@ -128,8 +130,6 @@ def _trajectory(i: int, rng, size):
 def _ego_blocker(ego_x, slope_x: float = 0.0):
     """The ego car as a ``(poses (T, 4), size)`` blocker in the first frame's sensor frame
     (None without ego motion data: the crossing placement)."""
-    from seqshape.sim.traffic import EGO_SIZE
-
     if ego_x is None:
         return None
     poses = np.zeros((len(ego_x), 4))
@@ -139,8 +139,6 @@ def _ego_blocker(ego_x, slope_x: float = 0.0):
 
 def _occluder_poses(rng, poses, size, occ_size, parked: bool, ego_x=None):
     """Candidate occluder poses ``(T, 4)``: a neighbour lane / parking slot or a free track."""
-    from seqshape.sim.trajectories import sample_trajectory
-
     cfg, sensor = _STATE["payload"].config, _STATE["sensor"]
     if rng.random() < 0.5:
         if parked:
@@ -167,8 +165,6 @@ def _occluder_poses(rng, poses, size, occ_size, parked: bool, ego_x=None):
 def _occluders(rng, v: int, poses, size, parked: bool, ego_x=None):
     """Up to ``max_occluders`` other vehicles of the same split that never collide (nor touch
     the ego car when ``ego_x`` is given: the traffic placement)."""
-    from seqshape.sim.trajectories import footprint_distance, footprints_overlap
-
     cfg, sensor, splits = _STATE["payload"].config, _STATE["sensor"], _STATE["payload"].splits
     pool = [u for u in range(len(splits)) if u != v and splits[u] == splits[v]]
     if not pool or cfg.max_occluders == 0:
@@ -196,8 +192,6 @@ def _occluders(rng, v: int, poses, size, parked: bool, ego_x=None):
 
 def make_track(i: int) -> Track:
     """Track ``i`` of the plan (see :class:`TrackPlan`), fully determined by (seed, i)."""
-    from seqshape.sim.raycast import scan_track
-
     payload, sensor, plan = _STATE["payload"], _STATE["sensor"], _STATE["plan"]
     cfg = payload.config
     if getattr(cfg, "real", None) is not None:
@@ -213,7 +207,7 @@ def make_track(i: int) -> Track:
     points = scan_track(mesh, poses, sensor, rng, occ, cfg.ground)
     meta = {"mesh_id": vid, "kind": kind, "source": source, "sensor": sensor.name,
             "split": payload.splits[v], "generator": "seqshape.sim.generate",
-            "generator_version": _generator_version(), "preset": cfg.name, "seed": cfg.seed,
+            "generator_version": GENERATOR_VERSION, "preset": cfg.name, "seed": cfg.seed,
             "track_index": i, "manoeuvre": traj.manoeuvre, "trajectory_source": traj.source,
             "ground": cfg.ground, "noise": cfg.noise, "occluders": occ_ids,
             **_traffic_meta(traj, 0.0)}
@@ -232,11 +226,6 @@ def _traffic_meta(traj, slope_x: float) -> dict:
 
 def make_real_track(i: int) -> Track:
     """Track ``i`` on the real path (:mod:`seqshape.sim.real`): scene scan, tracker-box crop."""
-    from dataclasses import asdict
-
-    from seqshape.sim import real
-    from seqshape.sim.sensors import mount_rotation
-
     payload, plan = _STATE["payload"], _STATE["plan"]
     cfg = payload.config
     rc = cfg.real
@@ -273,7 +262,7 @@ def make_real_track(i: int) -> Track:
                                              cfg.seed, i, (n, d))
     meta = {"mesh_id": vid, "kind": kind, "source": source, "sensor": sensor.name,
             "split": payload.splits[v], "generator": "seqshape.sim.generate",
-            "generator_version": _generator_version(), "preset": cfg.name, "seed": cfg.seed,
+            "generator_version": GENERATOR_VERSION, "preset": cfg.name, "seed": cfg.seed,
             "track_index": i, "manoeuvre": traj.manoeuvre, "trajectory_source": traj.source,
             "ground": True, "noise": True, "occluders": occ_ids, "class": _vehicle_class(kind),
             "real": {"sensor_height": height, "pitch_deg": float(np.degrees(pitch)),
@@ -295,8 +284,6 @@ def _static_clutter(srng, poses, size, occ, ego_x, slope_x: float, plane, rc):
     is a blocker too), and moves by ``-ego`` in each frame's sensor frame; the ground plane is
     the same in every frame (the ego drives along it). Without ``ego_x``: the sensor frame.
     """
-    from seqshape.sim import real
-
     blockers = [(poses, size)] + [(p, m.extents) for m, p in occ]
     ego = _ego_blocker(ego_x, slope_x)
     shift = None
@@ -321,17 +308,9 @@ def _moved(poses, shift):
 
 def _vehicle_class(kind: str) -> str | None:
     """seqshape's vehicle class of a fleet or procedural kind (None for user meshes)."""
-    from seqshape.vehicles.fleet import FLEET_KINDS
-
     if kind in FLEET_KINDS:
         return FLEET_KINDS[kind]
     return {"van": "van", "user": None}.get(kind, "car")
-
-
-def _generator_version() -> int:
-    from seqshape.sim.generate import GENERATOR_VERSION
-
-    return GENERATOR_VERSION
 
 
 def work_unit(unit) -> list[dict]:

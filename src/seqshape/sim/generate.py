@@ -14,24 +14,33 @@ Shard ``K/N`` (1-based) takes the vehicles with ``index % N == K - 1``.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
-import multiprocessing
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from seqshape.data.dataset import manifest_entry, write_manifest
+import seqshape._runner as _runner
+import seqshape.sim._worker as _tracks
+from seqshape._deprecated import forward
+from seqshape._runner import check_settings, check_shard, plan_work, run_pool, shard_items
+from seqshape.data.dataset import MANIFEST, manifest_entry, write_manifest
 from seqshape.data.track import Track, load_track
 from seqshape.errors import ConfigError, DataError
-from seqshape.sim import _worker as _tracks
+from seqshape.sim._worker import GENERATOR_VERSION
 from seqshape.sim.real import RealConfig
+from seqshape.sim.sensors import get_sensor
+from seqshape.sim.trajectories import PLACEMENTS, read_trajectory_csv
+from seqshape.vehicles import fleet_library, load_vehicle_folder, vehicle_library
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 1
+#: ``parse_shard`` moved to :mod:`seqshape._runner` (the one runner); the old path warns
+__getattr__ = forward(__name__, _runner, ("parse_shard",))
+
 CONFIG_FILE = "generate.json"
 
 
@@ -110,14 +119,10 @@ class GenerateConfig:
             raise ConfigError("need 0 < min_distance < max_distance")
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
-        from seqshape.sim.trajectories import PLACEMENTS
-
         if self.placement not in PLACEMENTS:
             raise ConfigError(f"placement must be one of {PLACEMENTS}, got {self.placement!r}")
         if self.library not in LIBRARIES:
             raise ConfigError(f"library must be one of {LIBRARIES}, got {self.library!r}")
-        from seqshape.sim.sensors import get_sensor
-
         get_sensor(self.sensor)
 
 
@@ -155,17 +160,6 @@ class GenerateSummary:
     missing: list[str] = field(default_factory=list)
 
 
-def parse_shard(text: str) -> tuple[int, int]:
-    """``"K/N"`` (1 <= K <= N) -> ``(K, N)``; :class:`ConfigError` otherwise."""
-    try:
-        k, n = (int(p) for p in str(text).split("/"))
-    except ValueError:
-        raise ConfigError(f"--shard must look like K/N (e.g. 1/4), got {text!r}") from None
-    if not 1 <= k <= n:
-        raise ConfigError(f"--shard K/N needs 1 <= K <= N, got {text!r}")
-    return k, n
-
-
 def config_dict(config: GenerateConfig) -> dict:
     """The config as saved in ``generate.json`` and the manifest (with the generator version).
 
@@ -180,16 +174,14 @@ def config_dict(config: GenerateConfig) -> dict:
 
 
 def _check_config(out: Path, cfg: dict) -> None:
-    """Write ``generate.json`` or check it matches: one folder, one config."""
-    from seqshape.data.dataset import check_folder_settings
-
-    check_folder_settings(out, CONFIG_FILE, cfg, "generated")
+    """Write ``generate.json`` or check it matches: one folder, one config (a folder with
+    tracks but no ``generate.json`` is refused too)."""
+    occupied = (out / MANIFEST).is_file() or any((out / "tracks").glob("*.npz"))
+    check_settings(out, CONFIG_FILE, cfg, made="tracks generated", occupied=occupied)
 
 
 def vehicles_digest(vehicles) -> str:
     """SHA-1 of the vehicles' ids and mesh arrays: a resume with other meshes is refused."""
-    import hashlib
-
     h = hashlib.sha1()
     for v in vehicles:
         h.update(v.vehicle_id.encode())
@@ -201,8 +193,6 @@ def vehicles_digest(vehicles) -> str:
 def _trajectories_digest(logs) -> str | None:
     if not logs:
         return None
-    import hashlib
-
     h = hashlib.sha1()
     for tr in logs:
         h.update(np.stack([tr.t, tr.x, tr.y, tr.yaw]).tobytes())
@@ -210,29 +200,23 @@ def _trajectories_digest(logs) -> str | None:
 
 
 def _load_vehicles(config: GenerateConfig):
-    from seqshape import vehicles
-
     if config.meshes is not None:
-        return vehicles.load_vehicle_folder(config.meshes, up=config.mesh_up,
-                                            forward=config.mesh_forward, scale=config.mesh_scale)
+        return load_vehicle_folder(config.meshes, up=config.mesh_up,
+                                   forward=config.mesh_forward, scale=config.mesh_scale)
     return library_vehicles(config.library, config.n_vehicles, config.seed)
 
 
 def library_vehicles(library: str, n: int, seed: int):
     """The ``n`` vehicles of ``library``: the one switch between the procedural library and
     the fleet library (`seqshape.vehicles.fleet_library`)."""
-    from seqshape import vehicles
-
     if library == "fleet":
-        return vehicles.fleet_library(n, seed=seed)
-    return vehicles.vehicle_library(n, seed=seed)
+        return fleet_library(n, seed=seed)
+    return vehicle_library(n, seed=seed)
 
 
 def _load_trajectories(spec: str | None):
     if spec is None:
         return []
-    from seqshape.sim.trajectories import read_trajectory_csv
-
     path = Path(spec)
     if path.is_dir():
         files = sorted(path.glob("*.csv"))
@@ -253,23 +237,17 @@ def _splits(n: int, config: GenerateConfig) -> list[str]:
     return ["val" if i in val else "train" for i in range(n)]
 
 
-def _work_units(n_vehicles: int, config: GenerateConfig, shard) -> list[int]:
-    k, n = shard
-    return [v for v in range(n_vehicles) if v % n == k - 1]
-
-
 def generate_dataset(config: GenerateConfig, out: str | Path, workers: int = 1,
                      shard: tuple[int, int] = (1, 1)) -> GenerateSummary:
     """Generate (or resume) the dataset ``config`` into ``out``; see the module docstring.
 
     Tracks already on disk (and loadable) are skipped. The manifest is written when every track
-    of the preset exists, by whichever run (shard) completes the set.
+    of the preset exists, by whichever run (shard) completes the set. Settings check, resume,
+    shards and the worker pool are :mod:`seqshape._runner`'s; the work unit is one vehicle.
     """
     t0 = time.perf_counter()
     config.validate()
-    k, n = shard
-    if not 1 <= k <= n:
-        raise ConfigError(f"shard {k}/{n}: need 1 <= K <= N")
+    k, n = check_shard(shard)
     if workers < 1:
         raise ConfigError(f"workers must be >= 1, got {workers}")
     out = Path(out)
@@ -285,23 +263,31 @@ def generate_dataset(config: GenerateConfig, out: str | Path, workers: int = 1,
     _check_config(out, cfg)
     splits = _splits(len(vehicles), config)
     plan = _tracks.TrackPlan(config, [v.vehicle_id for v in vehicles], splits)
+    entries: dict[str, dict] = {}
+
+    def is_done(i: int) -> bool:
+        e = _existing_entry(out, plan.track_id(i))
+        if e is not None:
+            entries[e["track_id"]] = e
+        return e is not None
 
     todo: dict[int, list[int]] = {}
-    entries: dict[str, dict] = {}
-    for v in _work_units(len(vehicles), config, shard):
-        for i in plan.track_indices(v):
-            e = _existing_entry(out, plan.track_id(i))
-            if e is None:
-                todo.setdefault(v, []).append(i)
-            else:
-                entries[e["track_id"]] = e
+    for v in shard_items(range(len(vehicles)), (k, n)):
+        work = plan_work(plan.track_indices(v), is_done)
+        if work.todo:
+            todo[v] = work.todo
     n_todo = sum(len(x) for x in todo.values())
     log.info("%s: %d tracks in shard %d/%d, %d already done, %d to generate", out,
              n_todo + len(entries), k, n, len(entries), n_todo)
     if n_todo:
         payload = _tracks.WorkerPayload.build(config, vehicles, splits, logs)
-        for e in _run(payload, todo, out, workers, n_todo):
-            entries[e["track_id"]] = e
+        units = [(v, idx, str(out)) for v, idx in sorted(todo.items())]
+        for result in run_pool(_tracks.work_unit, units, workers,
+                               initializer=_tracks.init_worker, initargs=(payload,),
+                               weight=lambda _u, r: len(r), total=n_todo, desc="generate",
+                               unit="track"):
+            for e in result:
+                entries[e["track_id"]] = e
     manifest_written, missing = _maybe_write_manifest(out, plan, cfg, entries)
     return GenerateSummary(plan.n_tracks, n_todo, len(entries) - n_todo, manifest_written,
                            time.perf_counter() - t0, missing)
@@ -318,30 +304,6 @@ def _existing_entry(out: Path, track_id: str) -> dict | None:
     except DataError as exc:
         log.warning("regenerating %s: %s", path, exc)
         return None
-
-
-def _run(payload, todo: dict[int, list[int]], out: Path, workers: int, total: int):
-    """Generate the tracks of ``todo`` (vehicle -> track indices); yields manifest entries."""
-    from seqshape._progress import progress
-
-    units = [(v, idx, str(out)) for v, idx in sorted(todo.items())]
-    bar = progress(total=total, desc="generate", unit="track")
-    try:
-        if workers == 1 or len(units) == 1:
-            _tracks.init_worker(payload)
-            for unit in units:
-                for e in _tracks.work_unit(unit):
-                    bar.update(1)
-                    yield e
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(min(workers, len(units)), initializer=_tracks.init_worker,
-                          initargs=(payload,)) as pool:
-                for result in pool.imap_unordered(_tracks.work_unit, units, chunksize=1):
-                    bar.update(len(result))
-                    yield from result
-    finally:
-        bar.close()
 
 
 def _maybe_write_manifest(out: Path, plan, cfg: dict, entries: dict[str, dict]):

@@ -1,4 +1,10 @@
-"""First-hit LiDAR raycasting of vehicle meshes through Embree (embreex).
+"""The one raycast core: first-hit raycasting of vehicle meshes through Embree (embreex).
+
+Every simulator casts through it: the track scan (:func:`scan_track`, used by
+``seqshape generate``), the ``real`` path (:class:`MeshRaycaster` of each scene object) and
+the camera + LiDAR scenes (:func:`scene_hits` / :func:`cast_posed`, used by
+:mod:`seqshape.sim.render`). The sensor side (sweep directions, window, range limits, noise,
+dropout) is the sensor's own (:class:`seqshape.sim.sensors.LidarConfig`).
 
 Speed comes from these choices:
 
@@ -8,8 +14,10 @@ Speed comes from these choices:
 * the mesh is never moved: the rays of each frame are mapped into the vehicle's canonical
   frame with the inverse of its pose;
 * only the rays that can hit the vehicle are cast: the channels and azimuth steps inside the
-  angular window of the vehicle's posed bounding box (plus a small margin);
-* the rays are built in float32, straight from per-sensor tables: ``cos``/``sin`` of the
+  angular window of the vehicle's posed bounding box (plus a small margin,
+  :func:`seqshape.sim.sensors.ray_window`);
+* the rays are built in float32, straight from the sensor's tables
+  (:meth:`~seqshape.sim.sensors.LidarConfig.tables`): ``cos``/``sin`` of the
   channel elevations times ``cos``/``sin`` of (azimuth - yaw), evaluated once per (frame,
   azimuth) column and shared by the channels;
 * all frames of a track go through Embree in one call (:func:`scan_track`); the float64 work
@@ -26,15 +34,18 @@ from __future__ import annotations
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
-from seqshape.sim.sensors import LidarConfig, directions
+from seqshape.geometry import pose_to_matrix, yaw_to_rotmat
+from seqshape.sim.sensors import (
+    LidarConfig,
+    direction_table,
+    ray_window,
+    sensor_tables,
+    window_grid,
+)
 
-# spatial margin (m) around the mesh bounds and angular margin (in azimuth steps) of the window
-_BOX_MARGIN = 0.05
-_AZ_MARGIN_STEPS = 1.5
 _MIN_COS = 1e-6  # hits whose ray is this close to parallel to the triangle are dropped
 
 
@@ -52,8 +63,8 @@ class MeshRaycaster:
     """
 
     def __init__(self, mesh):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
+        from embreex import rtcore_scene  # optional: installed on x86_64 only (pyproject)
+        from embreex.mesh_construction import TriangleMesh  # same
 
         self.scene = rtcore_scene.EmbreeScene()
         TriangleMesh(scene=self.scene,
@@ -105,6 +116,21 @@ class MeshRaycaster:
         r[~(r >= 0) | (np.abs(denom) <= _MIN_COS)] = np.inf
         return r
 
+    def offset_ranges(self, tri: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """:meth:`plane_ranges` in the point-offset form ``((v0 - o) . n) / (d . n)`` (inf
+        where ``|d . n| <= 1e-9`` or behind the origin), ``origins`` / ``dirs`` ``(H, 3)``.
+
+        The camera and scene LiDAR rendering (:func:`cast_posed`) have always used this form;
+        it differs from :meth:`plane_ranges` by float64 rounding only, and is kept so that the
+        written scenes stay byte-identical.
+        """
+        n = self.plane_normals[tri]
+        denom = np.einsum("ij,ij->i", dirs, n)
+        num = np.einsum("ij,ij->i", self.plane_points[tri] - origins, n)
+        ok = np.abs(denom) > 1e-9
+        r = np.where(ok, num / np.where(ok, denom, 1.0), np.inf)
+        return np.where(r >= 0, r, np.inf)
+
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """First hits of rays ``(R, 3)`` (mesh frame; ``dirs`` unit length).
 
@@ -143,80 +169,70 @@ def mesh_raycaster(mesh) -> MeshRaycaster:
     return rt
 
 
-@dataclass(frozen=True)
-class _SensorTables:
-    """Per-sensor trig tables; channels in ascending elevation (``order`` maps to presets)."""
-
-    elev: np.ndarray  # (C,) rad, ascending
-    cos_e: np.ndarray  # (C,) float64
-    sin_e: np.ndarray
-    cos_e32: np.ndarray  # (C,) float32
-    sin_e32: np.ndarray
-    az: np.ndarray  # (A,) rad, k * step
-    cos_a: np.ndarray  # (A,) float64
-    sin_a: np.ndarray
+# ------------------------------------------------------------------- rays from one origin
 
 
-@lru_cache(maxsize=8)
-def _tables(cfg: LidarConfig) -> _SensorTables:
-    elev = np.sort(cfg.elevations_rad)
-    az = np.arange(cfg.n_azimuths) * np.deg2rad(cfg.azimuth_step_deg)
-    ce, se = np.cos(elev), np.sin(elev)
-    return _SensorTables(elev, ce, se, ce.astype(np.float32), se.astype(np.float32), az,
-                         np.cos(az), np.sin(az))
+def cast_posed(mesh, pose, origin, dirs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cast sensor-frame rays (``origin`` (3,), unit ``dirs`` (R, 3)) at a mesh placed at ``pose``.
 
-
-@lru_cache(maxsize=8)
-def _direction_table(cfg: LidarConfig) -> np.ndarray:
-    """All ray directions of a sweep, ``(C, A, 3)`` float64 (channel in preset order, azimuth)."""
-    az = np.arange(cfg.n_azimuths) * np.deg2rad(cfg.azimuth_step_deg)
-    return directions(cfg.elevations_rad, az).reshape(len(cfg.elevations_deg), -1, 3)
-
-
-def _windows(bounds: np.ndarray, poses: np.ndarray, cfg: LidarConfig):
-    """Per frame: channel range ``c0:c1`` in ascending-elevation order and azimuth indices
-    ``k0..k1`` (all ``(T,)`` int64).
-
-    The window covers the posed, margin-grown bounding box exactly in elevation (a
-    conservative bound from the nearest and farthest footprint distances) and in azimuth (the
-    footprint corners). A frame whose footprint contains the sensor gets the full sweep.
+    Returns ``tri`` (R,) hit face (-1 for none), ``rng`` (R,) distance (inf for none) and
+    ``local`` (R, 3) hit points in the vehicle's canonical frame (NaN for none).
     """
-    lo, hi = bounds[0] - _BOX_MARGIN, bounds[1] + _BOX_MARGIN
-    c, s = np.cos(poses[:, 3]), np.sin(poses[:, 3])
-    # sensor origin in the canonical frame of each pose (planar part)
-    qx = -(c * poses[:, 0] + s * poses[:, 1])
-    qy = -(-s * poses[:, 0] + c * poses[:, 1])
-    dx = np.maximum(np.maximum(lo[0] - qx, qx - hi[0]), 0.0)
-    dy = np.maximum(np.maximum(lo[1] - qy, qy - hi[1]), 0.0)
-    rmin = np.hypot(dx, dy)
-    cx = np.array([lo[0], hi[0], hi[0], lo[0]])
-    cy = np.array([lo[1], lo[1], hi[1], hi[1]])
-    px = poses[:, :1] + c[:, None] * cx - s[:, None] * cy  # (T, 4) footprint corners
-    py = poses[:, 1:2] + s[:, None] * cx + c[:, None] * cy
-    rmax = np.hypot(px, py).max(1)
-    zlo, zhi = poses[:, 2] + lo[2], poses[:, 2] + hi[2]
-    inside = rmin <= 1e-9
-    rmin_s = np.maximum(rmin, 1e-9)
-    e_hi = np.where(zhi > 0, np.arctan2(zhi, rmin_s), np.arctan2(zhi, rmax))
-    e_lo = np.where(zlo < 0, np.arctan2(zlo, rmin_s), np.arctan2(zlo, rmax))
-    e_hi[inside & (zhi > 0)] = np.pi / 2
-    e_lo[inside & (zlo < 0)] = -np.pi / 2
-    elev = np.sort(cfg.elevations_rad)
-    c0 = np.searchsorted(elev, e_lo - 1e-6, side="left")
-    c1 = np.searchsorted(elev, e_hi + 1e-6, side="right")
-    centre = np.arctan2(poses[:, 1], poses[:, 0])
-    rel = (np.arctan2(py, px) - centre[:, None] + np.pi) % (2 * np.pi) - np.pi
-    step = np.deg2rad(cfg.azimuth_step_deg)
-    a_lo = centre + rel.min(1) - _AZ_MARGIN_STEPS * step
-    a_hi = centre + rel.max(1) + _AZ_MARGIN_STEPS * step
-    k0 = np.ceil(a_lo / step).astype(np.int64)
-    k1 = np.floor(a_hi / step).astype(np.int64)
-    k1 = np.minimum(k1, k0 + cfg.n_azimuths - 1)
-    k0[inside] = 0
-    k1[inside] = cfg.n_azimuths - 1
-    return c0, c1, k0, k1
+    rt = mesh_raycaster(mesh)
+    rot = yaw_to_rotmat(pose[3])
+    o = np.broadcast_to((np.asarray(origin, dtype=np.float64) - pose[:3]) @ rot, dirs.shape)
+    d = dirs @ rot
+    tri = rt.first_faces(o, d).astype(np.int64)
+    rng = np.full(len(d), np.inf)
+    hit = np.flatnonzero(tri >= 0)
+    if len(hit):
+        rng[hit] = rt.offset_ranges(tri[hit], o[hit], d[hit])
+    tri = np.where(np.isfinite(rng), tri, -1)
+    local = o + d * np.where(np.isfinite(rng), rng, np.nan)[:, None]
+    return tri, rng, local
 
 
+def cone_rays(dirs: np.ndarray, origin: np.ndarray, pose: np.ndarray, radius: float) -> np.ndarray:
+    """Indices of the rays (from ``origin``) that can meet a sphere of ``radius`` at ``pose``."""
+    c = np.asarray(pose[:3], dtype=np.float64) - origin
+    dist = float(np.linalg.norm(c))
+    if dist <= radius:
+        return np.arange(len(dirs))
+    cos_a = np.sqrt(1.0 - (radius / dist) ** 2)
+    return np.flatnonzero(dirs @ (c / dist) >= cos_a - 1e-9)
+
+
+@dataclass
+class VehicleHits:
+    """Rays of one vehicle: ``index`` into the ray array, ``rng``, ``tri``, ``local`` points."""
+
+    index: np.ndarray
+    rng: np.ndarray
+    tri: np.ndarray
+    local: np.ndarray
+
+
+def scene_hits(meshes, poses, origin, dirs) -> tuple[list[VehicleHits], np.ndarray, np.ndarray]:
+    """Per-vehicle hits of every ray from ``origin`` and the scene's first hit (vehicles only).
+
+    Only the rays inside a vehicle's bounding cone (sphere around its box) are cast at it.
+    Returns ``hits`` (one :class:`VehicleHits` per vehicle), ``owner`` (R,) int (vehicle
+    index or -1) and ``dist`` (R,) float64 (inf where no vehicle is hit).
+    """
+    owner = np.full(len(dirs), -1, dtype=np.int64)
+    dist = np.full(len(dirs), np.inf)
+    hits = []
+    for k, (mesh, pose) in enumerate(zip(meshes, poses, strict=True)):
+        radius = float(np.linalg.norm(mesh.extents)) / 2 + 0.05
+        idx = cone_rays(dirs, origin, pose, radius)
+        tri, rng, local = cast_posed(mesh, pose, origin, dirs[idx])
+        ok = tri >= 0
+        h = VehicleHits(idx[ok], rng[ok], tri[ok], local[ok])
+        hits.append(h)
+        better = h.rng < dist[h.index]
+        dist[h.index[better]] = h.rng[better]
+        owner[h.index[better]] = k
+    return hits, owner, dist
 
 
 @dataclass
@@ -256,7 +272,7 @@ class TrackRays:
 
     def exact_dirs(self, idx: np.ndarray, cfg: LidarConfig):
         """Float64 unit directions of the rays ``idx``: ``(canonical (H, 3), sensor (H, 3))``."""
-        tab = _tables(cfg)
+        tab = sensor_tables(cfg)
         ch, col = self.row_ch[self.ray_row[idx]], self.ray_col[idx]
         ce, se = tab.cos_e[ch], tab.sin_e[ch]
         k = self.col_k[col]
@@ -276,34 +292,21 @@ def track_rays(bounds: np.ndarray, poses, cfg: LidarConfig) -> TrackRays:
     """The rays of every frame that can hit a box ``bounds`` (canonical) placed at ``poses``
     ``(T, 4)``, mapped into the canonical frame (see :class:`TrackRays`)."""
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
-    tab = _tables(cfg)
-    c0, c1, k0, k1 = _windows(bounds, poses, cfg)
-    n_ch = np.maximum(c1 - c0, 0)
-    n_az = np.where(n_ch > 0, np.maximum(k1 - k0 + 1, 0), 0)
-    n_ch = np.where(n_az > 0, n_ch, 0)
-    frames = np.arange(len(poses))
-    # columns: one per (frame, azimuth); trig of (azimuth - yaw) once per column
-    col_start = np.cumsum(n_az) - n_az
-    col_frame = np.repeat(frames, n_az)
-    col_k = (np.arange(len(col_frame)) + np.repeat(k0 - col_start, n_az)) % cfg.n_azimuths
-    cy, sy = np.cos(poses[:, 3])[col_frame], np.sin(poses[:, 3])[col_frame]
+    tab = sensor_tables(cfg)
+    g = window_grid(cfg, *ray_window(cfg, bounds, poses))
+    row_ch, ray_row, ray_col, col_k = g.row_ch, g.ray_row, g.ray_col, g.col_k
+    # trig of (azimuth - yaw) once per column (frame, azimuth)
+    cy, sy = np.cos(poses[:, 3])[g.col_frame], np.sin(poses[:, 3])[g.col_frame]
     ca, sa = tab.cos_a[col_k], tab.sin_a[col_k]
     col_cos, col_sin = ca * cy + sa * sy, sa * cy - ca * sy  # cos / sin of (azimuth - yaw)
-    # rows: one per (frame, channel), each a run of n_az[frame] consecutive columns
-    row_frame = np.repeat(frames, n_ch)
-    row_ch = np.arange(len(row_frame)) + np.repeat(c0 - (np.cumsum(n_ch) - n_ch), n_ch)
-    width = n_az[row_frame]
-    ray_row = np.repeat(np.arange(len(row_frame)), width)
-    row_first = np.cumsum(width) - width
-    ray_col = np.arange(len(ray_row)) + (col_start[row_frame] - row_first)[ray_row]
     dirs = np.empty((len(ray_row), 3), np.float32)
     ce = tab.cos_e32[row_ch][ray_row]
     np.multiply(ce, col_cos.astype(np.float32)[ray_col], out=dirs[:, 0])
     np.multiply(ce, col_sin.astype(np.float32)[ray_col], out=dirs[:, 1])
     dirs[:, 2] = tab.sin_e32[row_ch][ray_row]
     frame_origin = _canonical_origins(poses)
-    origins = np.repeat(frame_origin.astype(np.float32), n_ch * n_az, axis=0)
-    return TrackRays(origins, dirs, frame_origin, ray_row, ray_col, row_frame, row_ch, col_k,
+    origins = np.repeat(frame_origin.astype(np.float32), g.frame_rays, axis=0)
+    return TrackRays(origins, dirs, frame_origin, ray_row, ray_col, g.row_frame, row_ch, col_k,
                      col_cos, col_sin)
 
 
@@ -360,10 +363,8 @@ def scan_track(mesh, poses, cfg: LidarConfig, rng: np.random.Generator,
         frame, dx, dy, dz, r = ret
         blocked = _occluded(np.stack([dx, dy, dz], 1), frame, r, cfg, occluders, ground)
         ret = _subset(ret, ~blocked)
-    if cfg.range_noise_std > 0:
-        ret[4] = ret[4] + rng.normal(0.0, cfg.range_noise_std, len(ret[4]))
-    if cfg.dropout > 0:
-        ret = _subset(ret, rng.random(len(ret[4])) >= cfg.dropout)
+    ret[4] = cfg.noisy_ranges(ret[4], rng)
+    ret = _subset(ret, cfg.kept_returns(len(ret[4]), rng))
     frame, dx, dy, dz, r = ret
     pts = np.empty((len(r), 3), np.float32)
     pts[:, 0], pts[:, 1], pts[:, 2] = dx * r, dy * r, dz * r
@@ -375,7 +376,7 @@ def _hit_returns(rt: MeshRaycaster, rays: TrackRays, tri: np.ndarray, cfg: Lidar
     """The exact returns of the rays that hit face ``tri`` (R,) (-1: none), within the
     sensor's range limits, in ray order: ``[frame, dx, dy, dz, r]``, each ``(H,)``: frame index,
     sensor-frame unit direction (float64) and float64 range from the hit face's plane."""
-    tab = _tables(cfg)
+    tab = sensor_tables(cfg)
     idx = np.flatnonzero(tri >= 0)
     row, col = rays.ray_row[idx], rays.ray_col[idx]
     frame, ch = rays.row_frame[row], rays.row_ch[row]
@@ -384,7 +385,7 @@ def _hit_returns(rt: MeshRaycaster, rays: TrackRays, tri: np.ndarray, cfg: Lidar
                         (ce * rays.col_cos[col], ce * rays.col_sin[col], se))
     k = rays.col_k[col]
     ret = [frame, ce * tab.cos_a[k], ce * tab.sin_a[k], se, r]
-    return _subset(ret, (r >= cfg.min_range) & (r <= cfg.max_range))
+    return _subset(ret, cfg.in_range(r))
 
 
 def _subset(arrays: list, keep: np.ndarray) -> list:
@@ -410,7 +411,7 @@ def full_sweep(intersector, cfg: LidarConfig) -> np.ndarray:
     ``intersector`` is a ``RayMeshIntersector`` of a mesh already placed in the sensor
     frame. Returns the hit face per ray, ``(cfg.rays_per_sweep,)`` int (-1: no hit).
     """
-    dirs = _direction_table(cfg).reshape(-1, 3)
+    dirs = direction_table(cfg).reshape(-1, 3)
     return intersector.intersects_first(np.zeros_like(dirs), dirs)
 
 
@@ -420,14 +421,12 @@ def full_sweep_points(mesh, pose, cfg: LidarConfig) -> np.ndarray:
     Uses ``intersects_location(multiple_hits=False)``; returns float64 ``(N, 3)`` hit points in
     the sensor frame (within the sensor's range limits).
     """
+    # embreex is installed on x86_64 only (pyproject): imported where a reference needs it
     from trimesh.ray.ray_pyembree import RayMeshIntersector
-
-    from seqshape.geometry import pose_to_matrix
 
     posed = mesh.copy()
     posed.apply_transform(pose_to_matrix(pose))
-    dirs = _direction_table(cfg).reshape(-1, 3)
+    dirs = direction_table(cfg).reshape(-1, 3)
     loc, _, _ = RayMeshIntersector(posed).intersects_location(
         np.zeros_like(dirs), dirs, multiple_hits=False)
-    r = np.linalg.norm(loc, axis=1)
-    return loc[(r >= cfg.min_range) & (r <= cfg.max_range)]
+    return loc[cfg.in_range(np.linalg.norm(loc, axis=1))]

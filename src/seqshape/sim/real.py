@@ -32,14 +32,17 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+import trimesh
 
 from seqshape.data.crop import CropConfig, crop_vehicle
 from seqshape.errors import ConfigError
+from seqshape.geometry import pose_to_matrix
 from seqshape.sim.raycast import MeshRaycaster, mesh_raycaster
-from seqshape.sim.sensors import LidarConfig, get_sensor
+from seqshape.sim.sensors import LidarConfig, get_sensor, ray_window, window_grid
+from seqshape.sim.trajectories import footprint_distance, footprints_overlap
+from seqshape.vehicles.base import BODY as _BODY
+from seqshape.vehicles.base import GLASS as _GLASS
 
-# material codes of seqshape.vehicles.base (repeated: the vehicles package is imported lazily)
-_BODY, _GLASS = 0, 1
 #: point source codes recorded per frame in the track meta (``sources``)
 SOURCES = ("target", "target_through_glass", "other_vehicle", "ground", "clutter")
 _TAG_SCENE, _TAG_JITTER, _TAG_RAYS = 0x5CE4E, 0x717E2, 0x2A75
@@ -214,18 +217,12 @@ def sample_paint(rng: np.random.Generator, cfg: RealConfig) -> float:
 
 
 def _box(centre, size, yaw):
-    import trimesh
-
-    from seqshape.geometry import pose_to_matrix
-
     m = trimesh.creation.box(extents=size)
     m.apply_transform(pose_to_matrix([*centre, yaw]))
     return m
 
 
 def _cylinder(centre, radius, height):
-    import trimesh
-
     m = trimesh.creation.cylinder(radius=radius, height=height, sections=12)
     m.apply_translation(centre)
     return m
@@ -238,8 +235,6 @@ def sample_clutter(rng: np.random.Generator, poses: np.ndarray, size, blockers, 
     Objects stand beside the path (1.0 to 3.5 m from the target's side at a random frame) and
     never overlap any footprint of ``blockers`` (``(poses (T, 4), size)`` pairs) in any frame.
     """
-    from seqshape.sim.trajectories import footprint_distance, footprints_overlap
-
     out = []
     n_obj = int(rng.integers(0, cfg.max_clutter + 1))
     for _ in range(n_obj):
@@ -282,8 +277,6 @@ def clutter_object(clutter) -> SceneObject | None:
     """All clutter meshes as one static :class:`SceneObject` (None when there is none)."""
     if not clutter:
         return None
-    import trimesh
-
     mesh = trimesh.util.concatenate([m for m, _, _ in clutter])
     rho = np.concatenate([np.full(len(m.faces), r) for m, r, _ in clutter])
     return SceneObject(MeshRaycaster(mesh), None, rho, np.zeros(len(rho), bool), 4)
@@ -324,16 +317,14 @@ def scan_rays(sensor: LidarConfig, mesh_bounds: np.ndarray, poses: np.ndarray,
     Per frame the context shrinks so that the sensor stays 0.5 m outside the grown box (else
     the window would be the whole sweep).
     """
-    from seqshape.sim.raycast import _windows
-    from seqshape.sim.trajectories import footprint_distance
-
     size = mesh_bounds[1] - mesh_bounds[0]
     gap = footprint_distance(poses[:, 0], poses[:, 1], poses[:, 3], size[0], size[1])
     ctx = np.clip(np.minimum(context, gap - 0.5), 0.0, None)
-    win = [_windows(scan_bounds(mesh_bounds, float(c), ground_drop), poses[t:t + 1], sensor)
+    win = [ray_window(sensor, scan_bounds(mesh_bounds, float(c), ground_drop), poses[t:t + 1])
            for t, c in enumerate(ctx)]
     c0, c1, k0, k1 = (np.concatenate(w) for w in zip(*win, strict=True))
-    elev = np.sort(sensor.elevations_rad)
+    tab = sensor.tables()
+    elev = tab.elev
     spacing = np.diff(elev).min() if len(elev) > 1 else 1.0
     m = int(np.ceil(tilt_rad / spacing)) + 1
     c0, c1 = np.maximum(c0 - m, 0), np.minimum(c1 + m, len(elev))
@@ -341,25 +332,14 @@ def scan_rays(sensor: LidarConfig, mesh_bounds: np.ndarray, poses: np.ndarray,
     full = (k1 - k0 + 1) >= sensor.n_azimuths
     k0 = np.where(full, k0, k0 - k_extra)
     k1 = np.where(full, k1, np.minimum(k1 + k_extra, k0 + sensor.n_azimuths - 1))
-    step = np.deg2rad(sensor.azimuth_step_deg)
-    grid = np.arange(sensor.n_azimuths) * step
-    n_ch = np.maximum(c1 - c0, 0)
-    n_az = np.where(n_ch > 0, np.maximum(k1 - k0 + 1, 0), 0)
-    n_ch = np.where(n_az > 0, n_ch, 0)
-    rows_frame = np.repeat(np.arange(len(poses)), n_ch)
-    row_ch = np.arange(len(rows_frame)) + np.repeat(c0 - (np.cumsum(n_ch) - n_ch), n_ch)
-    width = n_az[rows_frame]
-    row = np.repeat(np.arange(len(rows_frame)), width)
-    first = np.cumsum(width) - width
-    k = (np.arange(len(row)) - first[row] + k0[rows_frame][row]) % sensor.n_azimuths
-    ch = row_ch[row]
-    ce, se = np.cos(elev), np.sin(elev)
-    ca, sa = np.cos(grid), np.sin(grid)
+    g = window_grid(sensor, c0, c1, k0, k1)
+    row = g.ray_row
+    ch, k = g.row_ch[row], g.col_k[g.ray_col]
     d = np.empty((len(row), 3))
-    d[:, 0] = ce[ch] * ca[k]
-    d[:, 1] = ce[ch] * sa[k]
-    d[:, 2] = se[ch]
-    return Rays(elev[ch], grid[k], rows_frame[row], row, d @ rot.T)
+    d[:, 0] = tab.cos_e[ch] * tab.cos_a[k]
+    d[:, 1] = tab.cos_e[ch] * tab.sin_a[k]
+    d[:, 2] = tab.sin_e[ch]
+    return Rays(elev[ch], tab.az[k], g.row_frame[row], row, d @ rot.T)
 
 
 # --------------------------------------------------------------------------- casting
@@ -578,10 +558,10 @@ def scan_scene(scene: Scene, rays: Rays, rot, sensor: LidarConfig, cfg: RealConf
     """All returns of the scan: per frame ``(points (N, 3) float32, source (N,) int8)``."""
     r, rho, src = trace(scene, rays.dirs, rays.frame, cfg, rng)
     r, rho, src = mixed_returns(scene, rays, r, rho, src, rot, sensor, cfg, rng)
-    keep = np.isfinite(r) & (r >= sensor.min_range) & (r <= sensor.max_range)
+    keep = np.isfinite(r) & sensor.in_range(r)
     keep &= rng.random(len(r)) < detection_probability(np.where(keep, r, 1.0), rho, sensor, cfg)
     idx = np.flatnonzero(keep)
-    rr = r[idx] + rng.normal(0.0, sensor.range_noise_std, len(idx))
+    rr = sensor.noisy_ranges(r[idx], rng)  # the last draw of this generator
     pts = (rays.dirs[idx] * rr[:, None]).astype(np.float32)
     codes = src[idx].astype(np.int8)
     ends = np.searchsorted(rays.frame[idx], np.arange(n_frames + 1))  # frames are sorted

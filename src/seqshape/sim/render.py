@@ -1,10 +1,11 @@
 """Camera and LiDAR rendering of a frame of vehicle meshes over a ground plane, with exact masks.
 
-Everything is in the frame's sensor (velodyne) frame. Both sensors are raycast through Embree
-with one cached intersector per canonical mesh (:func:`seqshape.sim.raycast.mesh_raycaster`):
-rays are mapped into each vehicle's canonical frame, only the rays inside the vehicle's
+Everything is in the frame's sensor (velodyne) frame. Both sensors go through the one raycast
+core (:func:`seqshape.sim.raycast.scene_hits`, Embree, one cached intersector per canonical
+mesh): rays are mapped into each vehicle's canonical frame, only the rays inside the vehicle's
 bounding cone (sphere around its box seen from the ray origin) are cast, and the first hit of
-the scene is the nearest of the per-vehicle hits; the ground plane ``z = ground_z`` is
+the scene is the nearest of the per-vehicle hits. The LiDAR's sweep directions, range limits,
+noise and dropout are the sensor's own (:class:`seqshape.sim.sensors.LidarConfig`); the ground plane ``z = ground_z`` is
 intersected analytically and only where no vehicle is hit (vehicles stand on it).
 
 Camera: one ray per pixel centre (integer pixel coordinates, as in KITTI and
@@ -22,14 +23,14 @@ by one image size on every side (stride :data:`OUTER_STRIDE` px, each hit counti
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
 from seqshape.geometry import yaw_to_rotmat
-from seqshape.sim.raycast import mesh_raycaster
-from seqshape.sim.sensors import LidarConfig, ray_directions
+from seqshape.sim.raycast import VehicleHits, cast_posed, cone_rays, scene_hits
+from seqshape.sim.sensors import LidarConfig
 
 OUTER_STRIDE = 4
 SKY, GROUND = -2, -1  #: owner codes of pixels / returns that hit no vehicle
@@ -86,73 +87,6 @@ def _build_camera_rays(p, rect_to_velo, w, h) -> CameraRays:
     out = ~((ou >= 0) & (ou < w) & (ov >= 0) & (ov < h))
     outer = dirs_of(ou[out].astype(np.float64), ov[out].astype(np.float64))
     return CameraRays(origin, inner, outer, int(w), int(h))
-
-
-def _cone(dirs: np.ndarray, origin: np.ndarray, pose: np.ndarray, radius: float) -> np.ndarray:
-    """Indices of the rays (from ``origin``) that can meet a sphere of ``radius`` at ``pose``."""
-    c = np.asarray(pose[:3], dtype=np.float64) - origin
-    dist = float(np.linalg.norm(c))
-    if dist <= radius:
-        return np.arange(len(dirs))
-    cos_a = np.sqrt(1.0 - (radius / dist) ** 2)
-    return np.flatnonzero(dirs @ (c / dist) >= cos_a - 1e-9)
-
-
-def cast_vehicle(mesh, pose, origin, dirs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cast sensor-frame rays (``origin`` (3,), unit ``dirs`` (R, 3)) at a mesh placed at ``pose``.
-
-    Returns ``tri`` (R,) hit face (-1 for none), ``rng`` (R,) distance (inf for none) and
-    ``local`` (R, 3) hit points in the vehicle's canonical frame (NaN for none).
-    """
-    rt = mesh_raycaster(mesh)
-    rot = yaw_to_rotmat(pose[3])
-    o = np.broadcast_to((np.asarray(origin, dtype=np.float64) - pose[:3]) @ rot, dirs.shape)
-    d = dirs @ rot
-    tri = rt.first_faces(o, d).astype(np.int64)
-    rng = np.full(len(d), np.inf)
-    hit = np.flatnonzero(tri >= 0)
-    if len(hit):
-        n = rt.plane_normals[tri[hit]]
-        denom = np.einsum("ij,ij->i", d[hit], n)
-        num = np.einsum("ij,ij->i", rt.plane_points[tri[hit]] - o[hit], n)
-        ok = np.abs(denom) > 1e-9
-        r = np.where(ok, num / np.where(ok, denom, 1.0), np.inf)
-        rng[hit] = np.where(r >= 0, r, np.inf)
-    tri = np.where(np.isfinite(rng), tri, -1)
-    local = o + d * np.where(np.isfinite(rng), rng, np.nan)[:, None]
-    return tri, rng, local
-
-
-@dataclass
-class VehicleHits:
-    """Rays of one vehicle: ``index`` into the ray array, ``rng``, ``tri``, ``local`` points."""
-
-    index: np.ndarray
-    rng: np.ndarray
-    tri: np.ndarray
-    local: np.ndarray
-
-
-def scene_hits(meshes, poses, origin, dirs) -> tuple[list[VehicleHits], np.ndarray, np.ndarray]:
-    """Per-vehicle hits of every ray and the scene's first hit (vehicles only).
-
-    Returns ``hits`` (one :class:`VehicleHits` per vehicle), ``owner`` (R,) int (vehicle
-    index or -1) and ``dist`` (R,) float64 (inf where no vehicle is hit).
-    """
-    owner = np.full(len(dirs), -1, dtype=np.int64)
-    dist = np.full(len(dirs), np.inf)
-    hits = []
-    for k, (mesh, pose) in enumerate(zip(meshes, poses, strict=True)):
-        radius = float(np.linalg.norm(mesh.extents)) / 2 + 0.05
-        idx = _cone(dirs, origin, pose, radius)
-        tri, rng, local = cast_vehicle(mesh, pose, origin, dirs[idx])
-        ok = tri >= 0
-        h = VehicleHits(idx[ok], rng[ok], tri[ok], local[ok])
-        hits.append(h)
-        better = h.rng < dist[h.index]
-        dist[h.index[better]] = h.rng[better]
-        owner[h.index[better]] = k
-    return hits, owner, dist
 
 
 def _ground_t(origin, dirs, ground_z: float) -> np.ndarray:
@@ -243,19 +177,14 @@ def render_camera(meshes, poses, colours, rays: CameraRays, ground_z: float,
     code[owner >= 0] = owner[owner >= 0]
     outer = np.zeros(len(meshes))
     for k, (mesh, pose) in enumerate(zip(meshes, poses, strict=True)):
-        idx = _cone(rays.outer_dirs, rays.origin, pose, float(np.linalg.norm(mesh.extents)) / 2)
+        idx = cone_rays(rays.outer_dirs, rays.origin, pose, float(np.linalg.norm(mesh.extents)) / 2)
         if len(idx):
-            tri, _, _ = cast_vehicle(mesh, pose, rays.origin, rays.outer_dirs[idx])
+            tri, _, _ = cast_posed(mesh, pose, rays.origin, rays.outer_dirs[idx])
             outer[k] = float(np.count_nonzero(tri >= 0)) * OUTER_STRIDE ** 2
     nearest = np.array([hk.rng.min() if len(hk.rng) else np.inf for hk in hits])
     image = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8).reshape(h, w, 3)
     return CameraFrame(image, code.reshape(h, w), depth.reshape(h, w), amodal, visible, outer,
                        nearest)
-
-
-@lru_cache(maxsize=4)
-def _sweep_dirs(cfg: LidarConfig) -> np.ndarray:
-    return ray_directions(cfg)
 
 
 def render_lidar(meshes, poses, colours, cfg: LidarConfig, rng: np.random.Generator,
@@ -267,7 +196,7 @@ def render_lidar(meshes, poses, colours, cfg: LidarConfig, rng: np.random.Genera
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
     ground_z = -cfg.height if ground_z is None else ground_z
-    dirs = _sweep_dirs(cfg)
+    dirs = cfg.sweep_directions()
     origin = np.zeros(3)
     hits, owner, dist = scene_hits(meshes, poses, origin, dirs)
     albedo = np.zeros(len(dirs))
@@ -286,12 +215,19 @@ def render_lidar(meshes, poses, colours, cfg: LidarConfig, rng: np.random.Genera
         albedo[g] = 0.15
     else:
         albedo[g] = ground_material(dirs[g] * tg[g, None])[1]
-    keep = np.flatnonzero(np.isfinite(dist) & (dist >= cfg.min_range) & (dist <= cfg.max_range))
-    r = dist[keep]
-    if cfg.range_noise_std > 0:
-        r = r + rng.normal(0.0, cfg.range_noise_std, len(r))
+    keep = np.flatnonzero(np.isfinite(dist) & cfg.in_range(dist))
+    r = cfg.noisy_ranges(dist[keep], rng)
     refl = np.clip(albedo[keep] * np.sqrt(cos_inc[keep]) + rng.normal(0, 0.02, len(r)), 0, 1)
-    drop = rng.random(len(r)) < cfg.dropout if cfg.dropout > 0 else np.zeros(len(r), bool)
-    sel = ~drop
+    sel = cfg.kept_returns(len(r), rng)
     pts = np.c_[dirs[keep[sel]] * r[sel, None], refl[sel]].astype(np.float32)
     return pts, owner[keep[sel]]
+
+
+def __getattr__(name: str):
+    """``cast_vehicle`` moved to :func:`seqshape.sim.raycast.cast_posed` (the one raycast core);
+    the old name works for one release with a :class:`DeprecationWarning`."""
+    if name != "cast_vehicle":
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    warnings.warn(f"{__name__}.cast_vehicle moved to seqshape.sim.raycast.cast_posed; the old "
+                  f"path will be removed in the next release", DeprecationWarning, stacklevel=2)
+    return cast_posed

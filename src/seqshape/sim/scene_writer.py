@@ -10,11 +10,13 @@ One output folder (``seqshape scenes --out DIR``)::
     image_02/SSSS/FFFFFF.png   rendered image (1242 x 375)
     label_02/SSSS.txt          Car / Van boxes of the vehicles in the image
     calib/SSSS.txt, oxts/SSSS.txt
-    amodal/SSSS.json           exact KINS ground truth (seqshape.amodal.kins)
+    amodal/SSSS.json           exact KINS ground truth (seqshape.data.kins)
     instances_2d/SSSS.json     visible masks as a 2D segmenter would give them (COCO)
 
 Determinism: every random draw comes from ``numpy.random.default_rng([seed, sequence, ...])``,
-so a sequence's files do not depend on ``--workers`` or on which sequences were resumed.
+so a sequence's files do not depend on ``--workers``, ``--shard`` or on which sequences were
+resumed. Settings check, resume, shards and the worker pool are :mod:`seqshape._runner`'s (the
+work unit is one sequence; shard ``K/N`` takes the sequences with ``index % N == K - 1``).
 
 Label rules (per frame, per vehicle k, areas in pixels, see :mod:`seqshape.sim.render`):
 
@@ -38,16 +40,37 @@ from pathlib import Path
 
 import numpy as np
 
-from seqshape import __version__
 from seqshape._io import atomic_write_bytes, atomic_write_json
+from seqshape._runner import check_settings, plan_work, run_pool
+from seqshape._version import __version__
+from seqshape.camera import kitti_default_calib, write_calib
+from seqshape.data import kitti
+from seqshape.data.categories import KITTI_TYPE_TO_KINS
+from seqshape.data.kins import (
+    coco_annotation,
+    image_entry,
+    kins_annotation,
+    occlusion_order,
+    write_coco_instances,
+    write_kins,
+)
+from seqshape.data.kitti import KittiLabel, pose_to_label_fields, poses_to_oxts
+from seqshape.data.track import Track
 from seqshape.errors import ConfigError, DataError
+from seqshape.geometry import pose_to_matrix
+from seqshape.sim.degrade import NO_DEGRADE, Instance2D, degrade_instances
+from seqshape.sim.render import camera_rays, render_camera, render_lidar
 from seqshape.sim.scenes import Agent, LayoutConfig, Road, Scene, build_scene, ground_material
+from seqshape.sim.sensors import get_sensor
+from seqshape.vehicles import procedural_vehicle, vehicle_library
 
 log = logging.getLogger(__name__)
 
 SCENE_FORMAT, SCENE_VERSION = "seqshape-scenes", 1
+SETTINGS_FILE = "scene.json"
 MIN_VISIBLE_AREA = 20
-CATEGORY = {"Car": 4, "Van": 7}  # KINS category ids (seqshape.amodal.kins.KINS_CATEGORIES)
+#: KINS category id of each KITTI type written (the one table, seqshape.data.categories)
+CATEGORY = KITTI_TYPE_TO_KINS
 
 
 @dataclass(frozen=True)
@@ -77,8 +100,6 @@ def scene_config(preset: str, **overrides) -> SceneConfig:
     if preset not in PRESETS:
         raise ConfigError(f"unknown scene preset {preset!r}; choose one of {sorted(PRESETS)}")
     cfg = replace(PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None})
-    from seqshape.sim.sensors import get_sensor
-
     get_sensor(cfg.sensor)  # validates the name
     if cfg.n_sequences < 1 or cfg.frames[0] < 1 or cfg.frames[0] > cfg.frames[1]:
         raise ConfigError(f"invalid scene settings {cfg}")
@@ -91,9 +112,6 @@ def _rng(seed: int, index: int, *stream: int) -> np.random.Generator:
 
 def make_scene(cfg: SceneConfig, seed: int, index: int) -> Scene:
     """Build sequence ``index`` of a scene set deterministically (layout and meshes)."""
-    from seqshape.sim.sensors import get_sensor
-    from seqshape.vehicles import vehicle_library
-
     rng = _rng(seed, index, 0)
     n_frames = int(rng.integers(cfg.frames[0], cfg.frames[1] + 1))
     lib_seed = int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0])
@@ -128,8 +146,6 @@ def load_scene(root, sequence: str) -> tuple[Scene, dict]:
 
     Raises :class:`DataError` when ``scene/SSSS.json`` is missing or inconsistent.
     """
-    from seqshape.vehicles import procedural_vehicle
-
     path = Path(root) / "scene" / f"{sequence}.json"
     try:
         doc = json.loads(path.read_text())
@@ -165,8 +181,6 @@ def render_frame(scene: Scene, t: int, calib, lidar_cfg, rng: np.random.Generato
     Returns ``(points (N, 4) float32, owner (N,) int64, CameraFrame)`` (see
     :mod:`seqshape.sim.render`); ``owner`` indexes ``scene.agents`` (or GROUND).
     """
-    from seqshape.sim.render import camera_rays, render_camera, render_lidar
-
     meshes = [scene.mesh(k) for k in range(len(scene.agents))]
     poses = scene.sensor_poses(t)
     material = ground_material(scene, t)
@@ -205,10 +219,6 @@ class FrameTruth:
 def frame_truth(scene: Scene, t: int, cam, calib, min_visible_area: int) -> FrameTruth:
     """Label rows (``KittiLabel``), KINS annotation dicts (without ids) and exact 2D instances
     (``Instance2D``) of frame ``t`` from its :class:`~seqshape.sim.render.CameraFrame`."""
-    from seqshape.amodal.degrade import Instance2D
-    from seqshape.amodal.kins import kins_annotation, occlusion_order
-    from seqshape.data.kitti import KittiLabel, pose_to_label_fields
-
     poses = scene.sensor_poses(t)
     labels, kept = [], []
     for k, a in enumerate(scene.agents):
@@ -239,7 +249,7 @@ def frame_truth(scene: Scene, t: int, cam, calib, min_visible_area: int) -> Fram
 
 
 def _png(image: np.ndarray) -> bytes:
-    import cv2
+    import cv2  # heavy optional import (~0.3 s): only the image writer needs OpenCV
 
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(image[:, :, ::-1]))
     if not ok:
@@ -248,9 +258,6 @@ def _png(image: np.ndarray) -> bytes:
 
 
 def _oxts_rows(scene: Scene, calib) -> np.ndarray:
-    from seqshape.data.kitti import poses_to_oxts
-    from seqshape.geometry import pose_to_matrix
-
     velo = pose_to_matrix(np.stack([scene.ego_pose(t) for t in range(scene.n_frames)]))
     velo = np.linalg.inv(velo[0]) @ velo  # velodyne t -> velodyne 0
     tv = calib.imu_to_velo
@@ -274,15 +281,9 @@ def generate_sequence(out, cfg: SceneConfig, seed: int, index: int, degrade=None
                       on_frame=None, return_tracks: bool = False) -> SequenceResult:
     """Generate and write sequence ``index`` (name ``f"{index:04d}"``) under ``out``.
 
-    ``degrade`` is a :class:`seqshape.amodal.degrade.DegradeConfig` (None: no degradation);
+    ``degrade`` is a :class:`seqshape.sim.degrade.DegradeConfig` (None: no degradation);
     ``on_frame()`` is called after each frame (progress).
     """
-    from seqshape.amodal.degrade import NO_DEGRADE, degrade_instances
-    from seqshape.amodal.kins import coco_annotation, image_entry, write_coco_instances, write_kins
-    from seqshape.camera import kitti_default_calib, write_calib
-    from seqshape.data import kitti
-    from seqshape.sim.sensors import get_sensor
-
     out, seq = Path(out), f"{index:04d}"
     degrade = degrade or NO_DEGRADE
     scene = make_scene(cfg, seed, index)
@@ -323,8 +324,6 @@ def generate_sequence(out, cfg: SceneConfig, seed: int, index: int, degrade=None
 
 
 def _own_tracks(scene: Scene, seq: str, own: dict, cfg: SceneConfig) -> list:
-    from seqshape.data import Track
-
     tracks = []
     for k in sorted(own):
         frames = [f for f, _ in own[k]]
@@ -339,71 +338,48 @@ def _own_tracks(scene: Scene, seq: str, own: dict, cfg: SceneConfig) -> list:
 
 
 def _settings(cfg: SceneConfig, seed: int, degrade) -> dict:
-    from seqshape.amodal.degrade import NO_DEGRADE
-
     return {"format": SCENE_FORMAT, "version": SCENE_VERSION, "seed": int(seed),
             "config": json.loads(json.dumps(asdict(cfg))),
             "degrade": json.loads(json.dumps(asdict(degrade or NO_DEGRADE)))}
 
 
-def _check_settings(out: Path, settings: dict) -> None:
-    path = out / "scene.json"
-    if not path.is_file():
-        return
-    try:
-        old = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DataError(path, f"unreadable scene settings ({exc})") from None
-    diff = [k for k in ("format", "seed", "config", "degrade") if old.get(k) != settings[k]]
-    if diff:
-        raise ConfigError(f"{out} holds scenes generated with other settings ({', '.join(diff)} "
-                          f"differ); choose another --out or the same options to resume")
+#: the settings a resume must repeat (``scene.json`` also records the sequence names and the
+#: generator's version, which may differ)
+_SETTINGS_KEYS = ("format", "seed", "config", "degrade")
 
 
 def generate_scenes(out, cfg: SceneConfig, seed: int = 0, workers: int = 1, degrade=None,
-                    progress_bar: bool | None = None) -> list[SequenceResult]:
-    """Generate every sequence of ``cfg`` under ``out``; complete sequences are skipped.
+                    progress_bar: bool | None = None,
+                    shard: tuple[int, int] = (1, 1)) -> list[SequenceResult]:
+    """Generate every sequence of ``cfg`` (of shard ``K/N``) under ``out``; complete sequences
+    (their ``scene/SSSS.json`` exists) are skipped.
 
     Returns the results of the sequences generated by this call. Sequences run in parallel
-    over ``workers`` processes (the files do not depend on it).
+    over ``workers`` processes (the files depend on neither the workers nor the shard).
     """
-    from concurrent.futures import ProcessPoolExecutor
-
-    from seqshape._progress import progress
-
     out = Path(out)
     settings = _settings(cfg, seed, degrade)
-    _check_settings(out, settings)
+    check_settings(out, SETTINGS_FILE, settings, keys=_SETTINGS_KEYS, made="scenes generated",
+                   write=False)
     out.mkdir(parents=True, exist_ok=True)
-    todo = [i for i in range(cfg.n_sequences) if not (out / "scene" / f"{i:04d}.json").is_file()]
+    work = plan_work(range(cfg.n_sequences),
+                     lambda i: (out / "scene" / f"{i:04d}.json").is_file(), shard)
     names = [f"{i:04d}" for i in range(cfg.n_sequences)]
-    atomic_write_json(out / "scene.json", {**settings, "sequences": names,
-                                           "generator": f"seqshape {__version__}"})
-    if len(todo) < cfg.n_sequences:
-        log.info("resuming: %d of %d sequences already complete", cfg.n_sequences - len(todo),
-                 cfg.n_sequences)
-    frames = {i: int(_rng(seed, i, 0).integers(cfg.frames[0], cfg.frames[1] + 1)) for i in todo}
-    bar = progress(total=sum(frames.values()), desc="scenes", unit="frame",
-                   disable=None if progress_bar is None else not progress_bar)
-    results = []
-    try:
-        if workers <= 1 or len(todo) <= 1:
-            for i in todo:
-                results.append(generate_sequence(out, cfg, seed, i, degrade,
-                                                 on_frame=lambda: bar.update(1)))
-        else:
-            with ProcessPoolExecutor(max_workers=min(workers, len(todo))) as pool:
-                futures = {pool.submit(generate_sequence, out, cfg, seed, i, degrade): i
-                           for i in todo}
-                for fut in _as_completed(futures):
-                    results.append(fut.result())
-                    bar.update(frames[futures[fut]])
-    finally:
-        bar.close()
+    atomic_write_json(out / SETTINGS_FILE, {**settings, "sequences": names,
+                                            "generator": f"seqshape {__version__}"})
+    if work.done:
+        log.info("resuming: %d of %d sequences already complete", len(work.done),
+                 len(work.items))
+    frames = {i: int(_rng(seed, i, 0).integers(cfg.frames[0], cfg.frames[1] + 1))
+              for i in work.todo}
+    units = [(str(out), cfg, seed, i, degrade) for i in work.todo]
+    results = list(run_pool(_sequence_unit, units, workers,
+                            weight=lambda u, _r: frames[u[3]], total=sum(frames.values()),
+                            desc="scenes", unit="frame", progress_bar=progress_bar))
     return sorted(results, key=lambda r: r.sequence)
 
 
-def _as_completed(futures):
-    from concurrent.futures import as_completed
-
-    return as_completed(futures)
+def _sequence_unit(unit) -> SequenceResult:
+    """:func:`generate_sequence` of ``(out, cfg, seed, index, degrade)`` (a pool work unit)."""
+    out, cfg, seed, index, degrade = unit
+    return generate_sequence(out, cfg, seed, index, degrade)

@@ -26,7 +26,7 @@ import numpy as np
 
 from seqshape.errors import SeqshapeError
 from seqshape.geometry import compose, invert, wrap_angle
-from seqshape.sim.trajectories import footprints_overlap
+from seqshape.sim.kinematics import footprints_overlap
 
 EGO_SIZE = np.array([4.6, 1.8, 1.6])  #: ego car footprint (for collision checks), LiDAR at centre
 PARKING_WIDTH = 2.6  #: width of the parking strip beyond each road edge (m)

@@ -7,6 +7,13 @@ sensor frame (x forward, y left, z up, origin at the LiDAR):
 
     d = (cos(e) cos(a), cos(e) sin(a), sin(e)).
 
+A sensor owns everything the simulators ask of it: its sweep directions
+(:meth:`LidarConfig.sweep_directions`, :meth:`LidarConfig.tables`, :func:`ray_window` for the
+rays that can meet a box), its range limits (:meth:`LidarConfig.in_range`), range noise
+(:meth:`LidarConfig.noisy_ranges`) and dropout (:meth:`LidarConfig.kept_returns`). The track
+scan (:mod:`seqshape.sim.raycast`), the ``real`` path and the scene LiDAR
+(:mod:`seqshape.sim.render`) use only these, so a new sensor is one :class:`LidarConfig`.
+
 >>> cfg = get_sensor("vlp16")
 >>> len(cfg.elevations_deg), cfg.rays_per_sweep
 (16, 28800)
@@ -14,7 +21,8 @@ sensor frame (x forward, y left, z up, origin at the LiDAR):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import numpy as np
 
@@ -90,9 +98,33 @@ class LidarConfig:
 
     def without_noise(self) -> LidarConfig:
         """The same sensor with no range noise and no dropout."""
-        from dataclasses import replace
-
         return replace(self, range_noise_std=0.0, dropout=0.0)
+
+    # -- what every simulator asks of a sensor: its rays, its range limits, noise, dropout
+
+    def sweep_directions(self) -> np.ndarray:
+        """All ray directions of a sweep, ``(R, 3)`` float64 (cached; see :func:`ray_directions`)."""
+        return _sweep_directions(self)
+
+    def tables(self) -> SensorTables:
+        """Trig tables of the channels and azimuths (cached, :class:`SensorTables`)."""
+        return sensor_tables(self)
+
+    def in_range(self, r: np.ndarray) -> np.ndarray:
+        """Mask of the ranges ``r`` the sensor reports: ``min_range <= r <= max_range``."""
+        return (r >= self.min_range) & (r <= self.max_range)
+
+    def noisy_ranges(self, r: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """``r`` plus Gaussian range noise (``range_noise_std``; no draw when it is 0)."""
+        if self.range_noise_std > 0:
+            return r + rng.normal(0.0, self.range_noise_std, len(r))
+        return r
+
+    def kept_returns(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``(n,)`` bool: which of ``n`` returns survive the dropout (no draw when it is 0)."""
+        if self.dropout > 0:
+            return rng.random(n) >= self.dropout
+        return np.ones(n, dtype=bool)
 
 
 def _hdl64_elevations() -> tuple[float, ...]:
@@ -209,3 +241,139 @@ def mount_rotation(pitch: float, roll: float) -> np.ndarray:
     ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
     rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
     return ry @ rx
+
+
+@lru_cache(maxsize=8)
+def _sweep_directions(cfg: LidarConfig) -> np.ndarray:
+    return ray_directions(cfg)
+
+
+@dataclass(frozen=True)
+class SensorTables:
+    """Per-sensor trig tables; channels in ascending elevation (not the preset's order).
+
+    ``elev`` (C,) rad ascending with ``cos_e`` / ``sin_e`` (float64) and ``cos_e32`` /
+    ``sin_e32`` (float32); ``az`` (A,) rad on the grid ``k * azimuth_step`` (not wrapped) with
+    ``cos_a`` / ``sin_a`` (float64).
+    """
+
+    elev: np.ndarray
+    cos_e: np.ndarray
+    sin_e: np.ndarray
+    cos_e32: np.ndarray
+    sin_e32: np.ndarray
+    az: np.ndarray
+    cos_a: np.ndarray
+    sin_a: np.ndarray
+
+
+@lru_cache(maxsize=8)
+def sensor_tables(cfg: LidarConfig) -> SensorTables:
+    """The :class:`SensorTables` of ``cfg`` (cached)."""
+    elev = np.sort(cfg.elevations_rad)
+    az = np.arange(cfg.n_azimuths) * np.deg2rad(cfg.azimuth_step_deg)
+    ce, se = np.cos(elev), np.sin(elev)
+    return SensorTables(elev, ce, se, ce.astype(np.float32), se.astype(np.float32), az,
+                        np.cos(az), np.sin(az))
+
+
+@lru_cache(maxsize=8)
+def direction_table(cfg: LidarConfig) -> np.ndarray:
+    """All ray directions of a sweep, ``(C, A, 3)`` float64 (channel in preset order, azimuth
+    ``k * step`` not wrapped)."""
+    az = np.arange(cfg.n_azimuths) * np.deg2rad(cfg.azimuth_step_deg)
+    return directions(cfg.elevations_rad, az).reshape(len(cfg.elevations_deg), -1, 3)
+
+
+BOX_MARGIN = 0.05  #: spatial margin (m) around a box in :func:`ray_window`
+AZ_MARGIN_STEPS = 1.5  #: angular margin (azimuth steps) of :func:`ray_window`
+
+
+def ray_window(cfg: LidarConfig, bounds: np.ndarray, poses: np.ndarray):
+    """The rays of ``cfg`` that can meet a box ``bounds`` (2, 3) (canonical) at ``poses`` (T, 4).
+
+    Per frame: channel range ``c0:c1`` in ascending-elevation order (:class:`SensorTables`)
+    and azimuth indices ``k0..k1`` (all ``(T,)`` int64; ``k`` may leave ``0..A-1``: take it
+    modulo ``n_azimuths``).
+
+    The window covers the posed box grown by :data:`BOX_MARGIN` exactly in elevation (a
+    conservative bound from the nearest and farthest footprint distances) and in azimuth (the
+    footprint corners, plus :data:`AZ_MARGIN_STEPS`). A frame whose footprint contains the
+    sensor gets the full sweep.
+    """
+    lo, hi = bounds[0] - BOX_MARGIN, bounds[1] + BOX_MARGIN
+    c, s = np.cos(poses[:, 3]), np.sin(poses[:, 3])
+    # sensor origin in the canonical frame of each pose (planar part)
+    qx = -(c * poses[:, 0] + s * poses[:, 1])
+    qy = -(-s * poses[:, 0] + c * poses[:, 1])
+    dx = np.maximum(np.maximum(lo[0] - qx, qx - hi[0]), 0.0)
+    dy = np.maximum(np.maximum(lo[1] - qy, qy - hi[1]), 0.0)
+    rmin = np.hypot(dx, dy)
+    cx = np.array([lo[0], hi[0], hi[0], lo[0]])
+    cy = np.array([lo[1], lo[1], hi[1], hi[1]])
+    px = poses[:, :1] + c[:, None] * cx - s[:, None] * cy  # (T, 4) footprint corners
+    py = poses[:, 1:2] + s[:, None] * cx + c[:, None] * cy
+    rmax = np.hypot(px, py).max(1)
+    zlo, zhi = poses[:, 2] + lo[2], poses[:, 2] + hi[2]
+    inside = rmin <= 1e-9
+    rmin_s = np.maximum(rmin, 1e-9)
+    e_hi = np.where(zhi > 0, np.arctan2(zhi, rmin_s), np.arctan2(zhi, rmax))
+    e_lo = np.where(zlo < 0, np.arctan2(zlo, rmin_s), np.arctan2(zlo, rmax))
+    e_hi[inside & (zhi > 0)] = np.pi / 2
+    e_lo[inside & (zlo < 0)] = -np.pi / 2
+    elev = np.sort(cfg.elevations_rad)
+    c0 = np.searchsorted(elev, e_lo - 1e-6, side="left")
+    c1 = np.searchsorted(elev, e_hi + 1e-6, side="right")
+    centre = np.arctan2(poses[:, 1], poses[:, 0])
+    rel = (np.arctan2(py, px) - centre[:, None] + np.pi) % (2 * np.pi) - np.pi
+    step = np.deg2rad(cfg.azimuth_step_deg)
+    a_lo = centre + rel.min(1) - AZ_MARGIN_STEPS * step
+    a_hi = centre + rel.max(1) + AZ_MARGIN_STEPS * step
+    k0 = np.ceil(a_lo / step).astype(np.int64)
+    k1 = np.floor(a_hi / step).astype(np.int64)
+    k1 = np.minimum(k1, k0 + cfg.n_azimuths - 1)
+    k0[inside] = 0
+    k1[inside] = cfg.n_azimuths - 1
+    return c0, c1, k0, k1
+
+
+@dataclass(frozen=True)
+class RayGrid:
+    """The rays of per-frame windows (:func:`window_grid`): frame-major, then channel in
+    ascending elevation, then azimuth (counter-clockwise). A *row* is one (frame, channel)
+    pair, a *column* one (frame, azimuth); all ``int64``.
+
+    Attributes:
+        row_frame / row_ch: ``(n_rows,)`` frame and channel (ascending-elevation index).
+        col_frame / col_k: ``(n_cols,)`` frame and azimuth index (``0 .. n_azimuths - 1``).
+        ray_row / ray_col: ``(R,)`` row and column of each ray.
+        frame_rays: ``(T,)`` rays per frame.
+    """
+
+    row_frame: np.ndarray
+    row_ch: np.ndarray
+    col_frame: np.ndarray
+    col_k: np.ndarray
+    ray_row: np.ndarray
+    ray_col: np.ndarray
+    frame_rays: np.ndarray
+
+
+def window_grid(cfg: LidarConfig, c0, c1, k0, k1) -> RayGrid:
+    """Enumerate the rays of per-frame windows (channels ``c0:c1``, azimuth indices
+    ``k0..k1``, all ``(T,)``, as :func:`ray_window` returns them) as a :class:`RayGrid`."""
+    n_ch = np.maximum(c1 - c0, 0)
+    n_az = np.where(n_ch > 0, np.maximum(k1 - k0 + 1, 0), 0)
+    n_ch = np.where(n_az > 0, n_ch, 0)
+    frames = np.arange(len(n_ch))
+    col_start = np.cumsum(n_az) - n_az
+    col_frame = np.repeat(frames, n_az)
+    col_k = (np.arange(len(col_frame)) + np.repeat(k0 - col_start, n_az)) % cfg.n_azimuths
+    # rows: one per (frame, channel), each a run of n_az[frame] consecutive columns
+    row_frame = np.repeat(frames, n_ch)
+    row_ch = np.arange(len(row_frame)) + np.repeat(c0 - (np.cumsum(n_ch) - n_ch), n_ch)
+    width = n_az[row_frame]
+    ray_row = np.repeat(np.arange(len(row_frame)), width)
+    row_first = np.cumsum(width) - width
+    ray_col = np.arange(len(ray_row)) + (col_start[row_frame] - row_first)[ray_row]
+    return RayGrid(row_frame, row_ch, col_frame, col_k, ray_row, ray_col, n_ch * n_az)

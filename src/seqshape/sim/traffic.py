@@ -44,6 +44,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from seqshape.errors import ConfigError
+from seqshape.sim.kinematics import (
+    Trajectory,
+    bicycle_path,
+    footprint_distance,
+    footprints_overlap,
+    place_path,
+)
 
 LANE_WIDTH = 3.5
 """m, lane width (urban arterials and motorways: 3.0-3.75 m)."""
@@ -141,8 +148,6 @@ def _anchor_frame(rng, manoeuvre: str, n: int) -> int:
 def _ego_shift(rx, ry, yaw, length, width, push: float) -> float:
     """How far (m) to move the track along ``push`` (+-1 along x) so that no frame's footprint
     comes within ``EGO_MARGIN`` of the ego's; 0 when none does."""
-    from seqshape.sim.trajectories import footprints_overlap
-
     poses = np.stack([rx, ry, np.zeros_like(rx), yaw], 1)
     hit = footprints_overlap(poses, (length, width), np.zeros_like(poses), EGO_SIZE, EGO_MARGIN)
     if not hit.any():
@@ -164,8 +169,6 @@ def sample_traffic(rng: np.random.Generator, t: np.ndarray, manoeuvre: str | Non
     else sampled. ``situation`` forces one of ``SITUATIONS`` for a moving manoeuvre (None:
     drawn).
     """
-    from seqshape.sim.trajectories import Trajectory, _place, bicycle_path, footprint_distance
-
     if manoeuvre is None:
         manoeuvre = _pick(rng, TRAFFIC_MANOEUVRES)
     if manoeuvre not in TRAFFIC_MANOEUVRES:
@@ -199,7 +202,8 @@ def sample_traffic(rng: np.random.Generator, t: np.ndarray, manoeuvre: str | Non
         ax, ay = ax0, ay0
         for _ in range(40):
             wx = ax + ego[k]  # the anchor in the road frame
-            px, py, pyaw = _place(x, y, yaw, k, math.hypot(wx, ay), math.atan2(ay, wx), heading)
+            px, py, pyaw = place_path(x, y, yaw, k, math.hypot(wx, ay), math.atan2(ay, wx),
+                                      heading)
             rx = px - ego
             gap = np.minimum(footprint_distance(rx, py, pyaw, length, width) - min_clearance,
                              np.hypot(rx, py) - min_distance).min()

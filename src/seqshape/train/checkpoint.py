@@ -8,7 +8,8 @@ uninterrupted one would.
 
 :func:`load_init` reads the weights a run starts from (``seqshape train --init``): an exported
 ``model.pt``, a training checkpoint (only its weights), or ``"pretrained"`` (the shipped
-``seqshape/pretrained/<kind>.pt``), checking that kind and model configuration match the run
+``seqshape/pretrained/<kind>.pt``; resolved by :func:`seqshape.model.estimator.resolve_weights`),
+checking that kind and model configuration match the run
 (except the parameter-free fields :data:`~seqshape.model.config.PARAMETER_FREE_FIELDS`: the
 input scale can be switched on when fine-tuning from weights trained without it; and the
 zero-initialised extensions ``frame_skip`` and ``motion_input`` can be switched on: the new
@@ -29,12 +30,15 @@ import torch
 
 from seqshape._io import atomic_open
 from seqshape.errors import ConfigError, DataError
-from seqshape.model import estimator
 from seqshape.model.config import PARAMETER_FREE_FIELDS, ModelConfig
-from seqshape.model.estimator import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_model_file
+from seqshape.model.estimator import (
+    CHECKPOINT_FORMAT,
+    CHECKPOINT_VERSION,
+    read_model_file,
+    resolve_weights,
+)
+from seqshape.model.estimator import PRETRAINED as PRETRAINED  # re-exported (--init pretrained)
 from seqshape.model.network import ShapePoseNet, add_motion_columns
-
-PRETRAINED = "pretrained"
 
 
 def rng_state() -> dict[str, Any]:
@@ -85,16 +89,10 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def resolve_init(spec: str | Path, kind: str) -> Path:
-    """The weights file named by ``--init``: a path, or ``"pretrained"`` = the shipped
-    ``seqshape/pretrained/<kind>.pt`` (a :class:`DataError` when it is not installed)."""
-    if str(spec) != PRETRAINED:
-        return Path(spec)
-    path = estimator.PRETRAINED_DIR / f"{kind}.pt"
-    if not path.is_file():
-        raise DataError(path, f"shipped {kind} weights are missing from this installation; "
-                              f"pass --init RUN/model.pt (a run of `seqshape train --model "
-                              f"{kind}`) instead of --init {PRETRAINED}")
-    return path
+    """The weights file named by ``--init``: a path, ``"pretrained"`` = the shipped
+    ``seqshape/pretrained/<kind>.pt``, or a shipped name
+    (:func:`seqshape.model.estimator.resolve_weights`, the one resolver)."""
+    return resolve_weights(spec, kind)
 
 
 def load_init(spec: str | Path, kind: str, model_cfg: ModelConfig

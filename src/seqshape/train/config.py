@@ -138,8 +138,8 @@ class TrainConfig:
 
 
 TRAIN_PRESETS: dict[str, TrainConfig] = {
-    # ~0.4 s per step on one core (72 frames): the step counts are upper bounds, pair with
-    # --time-budget-min to fit a wall-clock slot.
+    # the step counts are upper bounds (seconds per step: docs/model.md, "Measurements"), pair
+    # with --time-budget-min to fit a wall-clock slot.
     "small": TrainConfig(),
     "paper": TrainConfig(model_preset="paper", batch_size=16, window=12,
                          num_complete_gt=2048,

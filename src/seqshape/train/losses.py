@@ -11,6 +11,8 @@ import math
 import torch
 from torch import nn
 
+from seqshape.model.transforms import unplace_points
+
 _CHUNK_ELEMENTS = 1 << 22  # (b, P, Q) distances per chunk: 16 MB of float32 stays in cache
 
 
@@ -87,10 +89,7 @@ def pose_inverse_apply(pose: torch.Tensor, points: torch.Tensor) -> torch.Tensor
 
     ``T`` maps canonical to sensor (``p = R_z(yaw) c + t``), so ``T^-1 p = R_z(yaw)^T (p - t)``.
     """
-    d = points - pose[:, None, :3]
-    c, s = torch.cos(pose[:, 3])[:, None], torch.sin(pose[:, 3])[:, None]
-    return torch.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1],
-                        d[..., 2]], dim=-1)
+    return unplace_points(points, pose)
 
 
 def pose_loss(pose_pred: torch.Tensor, pose_gt: torch.Tensor, gt_points: torch.Tensor,

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 import torch
 
+import seqshape.train.checkpoint as ckpt
 from seqshape._io import atomic_write_json
 from seqshape._progress import progress
 from seqshape.data.dataset import TrackDataset
@@ -47,7 +48,7 @@ from seqshape.data.windows import WindowDataset, batch_for_step, collate
 from seqshape.errors import ConfigError, DataError
 from seqshape.model.estimator import KINDS
 from seqshape.model.network import ShapePoseNet
-from seqshape.train import checkpoint as ckpt
+from seqshape.model.transforms import place_points
 from seqshape.train.config import STAGE_NAMES, TrainConfig
 from seqshape.train.losses import JointLoss, chamfer_distance, pose_loss
 from seqshape.train.runlog import RunLog
@@ -66,13 +67,6 @@ def _trainable(split: TrackDataset, name: str) -> TrackDataset:
     if not len(keep):
         raise DataError(split.path, f"no {name} track has a complete shape to train against")
     return keep
-
-
-def place_complete(complete: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
-    """Canonical shapes (F, M, 3) to the sensor frame with poses (F, 4): ``R c + t``."""
-    c, s = torch.cos(poses[:, 3])[:, None], torch.sin(poses[:, 3])[:, None]
-    x, y = complete[..., 0], complete[..., 1]
-    return torch.stack([c * x - s * y, s * x + c * y, complete[..., 2]], -1) + poses[:, None, :3]
 
 
 class Trainer:
@@ -221,7 +215,7 @@ class Trainer:
         sel = batch["valid"] & out["seen"]
         frame_track = sel.nonzero()[:, 0]
         gt_pose = batch["poses"][sel]
-        gt = place_complete(batch["complete"][frame_track], gt_pose)
+        gt = place_points(batch["complete"][frame_track], gt_pose)
         n = max(1, int(sel.sum()))
         res = {"frames": torch.tensor(float(sel.sum()))}
         if "complete" in out:
@@ -437,7 +431,6 @@ class Trainer:
     def run(self) -> Path:
         """Run the remaining stages, export ``RUN/model.pt`` and return its path."""
         self.write_config()
-        t0 = time.monotonic()
         self._validate_init()
         for stage in range(self.state["stage"], 3):
             if self.cfg.stages[stage].steps == 0:
@@ -449,7 +442,7 @@ class Trainer:
         if self.is_main:
             sig = self.joint.sigmas
             self.metrics.update(global_steps=self.state["global_step"], sigma_cd=sig[0],
-                                sigma_p=sig[1], last_session_seconds=time.monotonic() - t0)
+                                sigma_p=sig[1])
             ckpt.save_payload(path, self._model_payload())
             self.runlog.close()
             log.info("wrote %s (%s)", path, {k: round(v, 5) for k, v in self.metrics.items()

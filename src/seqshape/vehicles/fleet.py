@@ -27,6 +27,7 @@ from seqshape.vehicles.car_details import build_car
 from seqshape.vehicles.car_kinds import CAR_KINDS, sample_car_params
 from seqshape.vehicles.heavy import HEAVY_BUILDERS
 from seqshape.vehicles.parts import assemble
+from seqshape.vehicles.procedural import procedural_vehicle
 
 #: fine kind -> class, in class order.
 FLEET_KINDS: dict[str, str] = {
@@ -194,8 +195,6 @@ def fleet_library(n: int, seed: int = 0, mix: Mapping[str, float] | str | None =
 def vehicle_from_source(source: str) -> Vehicle:
     """Rebuild a procedural (``procedural:<kind>:<seed>``) or fleet (``fleet:<kind>:<seed>``)
     vehicle from its ``source`` string."""
-    from seqshape.vehicles.procedural import procedural_vehicle
-
     parts = str(source).split(":")
     if len(parts) != 3 or parts[0] not in ("procedural", "fleet") or not parts[2].isdigit():
         raise ConfigError(f"not a procedural or fleet vehicle source: {source!r} (expected "

@@ -8,9 +8,12 @@ Glass is drawn opaque, so INTERIOR faces are not drawn. Matplotlib is imported l
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from seqshape.vehicles.base import FACE_LABELS, INTERIOR
+from seqshape.vehicles.fleet import fleet_vehicle
 
 #: RGB colour of each face label in the renders.
 LABEL_COLOURS = {0: (0.80, 0.25, 0.20), 1: (0.35, 0.65, 0.95), 2: (0.12, 0.12, 0.12),
@@ -107,9 +110,6 @@ def render_doc_sheets(out_dir, seed: int = 0) -> list:
     ``python -c "from seqshape.vehicles.render import render_doc_sheets as r;
     r('docs/img/vehicles')"`` regenerates the images of docs/vehicles.md.
     """
-    from pathlib import Path
-
-    from seqshape.vehicles.fleet import fleet_vehicle
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

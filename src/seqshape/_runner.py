@@ -1,0 +1,206 @@
+"""The one runner of long commands that write one output per item (tracks, scene sequences).
+
+Four pieces, each usable alone, shared by ``seqshape generate`` and ``seqshape scenes``:
+
+* :func:`check_settings`: one folder, one set of settings. The first run writes a JSON
+  settings file; a later run into the same folder must bring equal settings (a resume) or is
+  refused with a :class:`~seqshape.errors.ConfigError` naming the file and the fields that
+  differ.
+* :func:`plan_work`: resume and shards. Items are numbered by their position in the full list;
+  shard ``K/N`` (1-based) takes the positions ``j`` with ``j % N == K - 1``, so the shards
+  partition the items and their union is the whole run. Items whose output is complete
+  (``is_done``) are skipped; the caller writes each item's output atomically (``seqshape._io``)
+  so that an interrupted run leaves no half-written item.
+* :func:`run_pool`: the worker pool. ``fn`` runs on every unit in this process
+  (``workers=1``) or in spawned worker processes (results in completion order), with a
+  progress bar. Workers ignore SIGINT: Ctrl-C reaches the parent only, which terminates the
+  pool and re-raises :class:`KeyboardInterrupt` (the CLI then says "rerun to resume").
+* :func:`parse_shard`: the ``--shard K/N`` option.
+
+Every item's output must depend only on the item (seeded per item), never on the worker
+count or the shard: then a resumed, sharded or parallel run gives the same bytes as one
+serial run.
+
+>>> parse_shard("2/3")
+(2, 3)
+>>> plan_work(range(8), lambda i: i == 4, shard=(2, 3)).todo
+[1, 7]
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import signal
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from seqshape._io import atomic_write_json
+from seqshape._progress import progress
+from seqshape.errors import ConfigError, DataError
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"K/N"`` (1 <= K <= N) -> ``(K, N)``; :class:`ConfigError` otherwise."""
+    try:
+        k, n = (int(p) for p in str(text).split("/"))
+    except ValueError:
+        raise ConfigError(f"--shard must look like K/N (e.g. 1/4), got {text!r}") from None
+    return check_shard((k, n))
+
+
+def check_shard(shard: tuple[int, int]) -> tuple[int, int]:
+    """``shard`` as ``(K, N)`` ints if ``1 <= K <= N``; :class:`ConfigError` otherwise."""
+    k, n = (int(x) for x in shard)
+    if not 1 <= k <= n:
+        raise ConfigError(f"shard {k}/{n}: --shard K/N needs 1 <= K <= N")
+    return k, n
+
+
+def shard_items(items: Iterable, shard: tuple[int, int] = (1, 1)) -> list:
+    """The items of shard ``K/N``: positions ``j`` with ``j % N == K - 1`` (module doc)."""
+    k, n = check_shard(shard)
+    return [x for j, x in enumerate(items) if j % n == k - 1]
+
+
+@dataclass
+class WorkPlan:
+    """What one run does: ``items`` of its shard (in order), of which ``done`` are complete
+    already and ``todo`` are to be made."""
+
+    items: list
+    done: list
+    todo: list
+
+
+def plan_work(items: Iterable, is_done: Callable[[Any], bool],
+              shard: tuple[int, int] = (1, 1)) -> WorkPlan:
+    """Split this shard's ``items`` into complete (``is_done(item)`` true) and to do."""
+    mine = shard_items(items, shard)
+    done, todo = [], []
+    for x in mine:
+        (done if is_done(x) else todo).append(x)
+    return WorkPlan(mine, done, todo)
+
+
+def read_settings(path: str | Path) -> dict | None:
+    """The JSON object in ``path``; None when the file does not exist; :class:`DataError`
+    when it is unreadable or not a JSON object."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DataError(path, f"unreadable settings file ({exc})") from None
+    if not isinstance(doc, dict):
+        raise DataError(path, "settings file does not hold a JSON object")
+    return doc
+
+
+def check_settings(folder: str | Path, file_name: str, settings: dict, *,
+                   keys: Sequence[str] | None = None, made: str = "outputs made",
+                   occupied: bool = False, write: bool = True) -> None:
+    """Refuse to resume into ``folder`` when its ``file_name`` holds other settings.
+
+    Args:
+        folder: the output folder.
+        file_name: the settings file inside it (JSON object).
+        settings: this run's settings (JSON-normalised: lists, not tuples).
+        keys: the fields compared (None: every field of either side).
+        made: what the folder holds, for the message ("tracks generated", "scenes generated").
+        occupied: the folder already holds outputs; without a settings file that is refused.
+        write: write ``settings`` (atomically) when the file does not exist yet.
+
+    Raises:
+        ConfigError: the settings differ (the message names the file and every differing
+            field with both values), or ``occupied`` without a settings file.
+        DataError: the settings file is unreadable.
+    """
+    path = Path(folder) / file_name
+    old = read_settings(path)
+    if old is not None:
+        names = keys if keys is not None else sorted(set(old) | set(settings))
+        diff = [k for k in names if old.get(k) != settings.get(k)]
+        if diff:
+            detail = ", ".join(f"{k}: {old.get(k)!r} there vs {settings.get(k)!r} now"
+                               for k in diff)
+            raise ConfigError(f"{folder} holds {made} with other settings ({detail}; recorded "
+                              f"in {path}); use another --out folder or rerun with the same "
+                              f"options")
+        return
+    if occupied:
+        raise ConfigError(f"{folder} already holds {made} but no {file_name}; use another "
+                          f"--out folder")
+    if write:
+        atomic_write_json(path, settings)
+
+
+def _init_worker(initializer: Callable | None, initargs: tuple) -> None:
+    """Worker start: ignore SIGINT (the parent handles Ctrl-C), then the caller's initializer."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def run_pool(fn: Callable, units: Sequence, workers: int = 1, *,
+             initializer: Callable | None = None, initargs: tuple = (),
+             weight: Callable[[Any, Any], int] | None = None, total: int | None = None,
+             desc: str = "", unit: str = "item", progress_bar: bool | None = None) -> Iterator:
+    """Yield ``fn(u)`` for every unit ``u`` of ``units``.
+
+    ``workers == 1`` (or a single unit): in this process, in order, after
+    ``initializer(*initargs)``. Otherwise over ``min(workers, len(units))`` spawned processes,
+    each started with ``initializer(*initargs)``, results in completion order (``fn``,
+    ``initializer``, the units and results must pickle). The progress bar advances by
+    ``weight(u, result)`` per finished unit (1 when None) up to ``total`` (``len(units)`` when
+    None); ``progress_bar`` None follows :func:`seqshape._progress.progress`'s default.
+    Ctrl-C terminates the workers and re-raises :class:`KeyboardInterrupt`.
+    """
+    if workers < 1:
+        raise ConfigError(f"workers must be >= 1, got {workers}")
+    units = list(units)
+    bar = progress(total=len(units) if total is None else total, desc=desc, unit=unit,
+                   disable=None if progress_bar is None else not progress_bar)
+    step = weight or (lambda _u, _r: 1)
+    try:
+        if workers == 1 or len(units) <= 1:
+            if initializer is not None and units:
+                initializer(*initargs)
+            for u in units:
+                result = fn(u)
+                bar.update(step(u, result))
+                yield result
+            return
+        yield from _pooled(fn, units, min(workers, len(units)), initializer, initargs, bar, step)
+    finally:
+        bar.close()
+
+
+def _pooled(fn, units, workers, initializer, initargs, bar, step) -> Iterator:
+    ctx = multiprocessing.get_context("spawn")
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(initializer, initargs))
+    try:
+        indexed = list(enumerate(units))
+        for j, result in pool.imap_unordered(_Indexed(fn), indexed, chunksize=1):
+            bar.update(step(units[j], result))
+            yield result
+        pool.close()
+    except BaseException:
+        pool.terminate()
+        raise
+    finally:
+        pool.join()
+
+
+class _Indexed:
+    """``(j, u) -> (j, fn(u))``: a picklable wrapper that tells which unit a result is of."""
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+
+    def __call__(self, item):
+        j, u = item
+        return j, self.fn(u)

@@ -1,0 +1,468 @@
+"""Masks as COCO RLE, and the KINS (amodal) and COCO (instance) JSON files of a sequence.
+
+Masks are boolean ``(H, W)`` arrays (row = image v, column = image u). RLEs are COCO compressed
+RLE dicts ``{"size": [H, W], "counts": str}`` (``counts`` decoded to ASCII so that they go into
+JSON as they are).
+
+KINS file (``amodal/SSSS.json``), one per sequence::
+
+    {"images": [{"id", "file_name": "SSSS/FFFFFF.png", "height", "width", "frame"}],
+     "categories": [{"id", "name"}],
+     "annotations": [{"id", "image_id", "category_id", "track_id",
+                      "a_segm", "i_segm",      # amodal / visible (inmodal) mask, RLE or polygons
+                      "a_bbox", "i_bbox",      # [x, y, w, h] of those masks, pixels
+                      "a_area", "i_area",      # pixel counts of those masks
+                      "oco_id", "ico_id",      # occlusion cluster and order, see below
+                      "iscrowd"}]}
+
+Occlusion order (:func:`occlusion_order`), the KINS definitions (Qi et al., CVPR 2019,
+Sec. 3: "occlusion clusters" and the "relative occlusion order" inside them): in one image, two
+instances are linked when their amodal masks overlap (the nearer one hides the other there);
+the connected components with two or more instances are the occlusion clusters.
+
+* ``oco_id``: the 1-based id of the instance's cluster, clusters numbered by the depth of their
+  nearest member (front first); an instance that overlaps no other instance is in no cluster
+  and gets ``oco_id`` 0 **and** ``ico_id`` 0.
+* ``ico_id``: the occlusion order inside the cluster: 1 for an instance that nothing hides
+  (the front-most), and one more than the largest order among the instances that hide it
+  (``1 + max(ico of its occluders)``), so it rises by one each time an instance is occluded:
+  A hides B hides C gives 1, 2, 3; A hiding both B and C (which do not touch) gives 1, 2, 2.
+
+Of two overlapping instances the one with the smaller depth hides the other; depth is whatever
+the producer sorts by (the labeller: the rank of its per-pixel occlusion order; the scene
+writer: the distance of each vehicle's nearest visible point); ties are broken by annotation
+order.
+
+Segmentations are read as COCO RLE or polygons everywhere (:func:`segm_to_mask`; the KINS
+release uses polygons); they are written as RLE, or as polygons with ``polygons=True``
+(:func:`mask_to_polygons`: the outer contours of the mask's connected parts, so a hole inside a
+mask is filled, and a round trip is exact otherwise).
+
+COCO instance file (``instances_2d/SSSS.json``): ``images`` and ``categories`` as above and
+``annotations`` with ``id``, ``image_id``, ``category_id``, ``segmentation`` (RLE, or polygons
+``[[x1, y1, x2, y2, ...], ...]`` when read), ``bbox`` ``[x, y, w, h]``, ``area``, ``score``,
+``iscrowd`` and an optional ``track_id``.
+
+The category list (:data:`~seqshape.data.categories.KINS_CATEGORIES`, the default
+``categories`` of every file written) comes from :mod:`seqshape.data.categories`.
+"""
+
+from __future__ import annotations
+
+import graphlib
+import json
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from seqshape._io import atomic_write_json
+from seqshape.data.categories import KINS_CATEGORIES
+from seqshape.errors import DataError, require
+
+IMAGE_KEYS = ("id", "file_name", "height", "width")
+KINS_KEYS = ("id", "image_id", "category_id", "a_segm", "i_segm", "a_bbox", "i_bbox",
+             "a_area", "i_area", "oco_id", "ico_id")
+COCO_KEYS = ("id", "image_id", "category_id", "segmentation")
+
+
+def _mask_api():
+    return require("pycocotools.mask", "COCO RLE masks", "pycocotools")
+
+
+# ----------------------------------------------------------------------------- masks
+
+
+def mask_to_rle(mask) -> dict:
+    """COCO compressed RLE ``{"size": [H, W], "counts": str}`` of a boolean (H, W) mask.
+
+    >>> m = np.zeros((3, 4), dtype=bool); m[1, 1:3] = True
+    >>> rle = mask_to_rle(m); rle["size"], bool((rle_to_mask(rle) == m).all())
+    ([3, 4], True)
+    """
+    mask = np.asarray(mask)
+    if mask.ndim != 2:
+        raise ValueError(f"mask must be 2-D (H, W), got shape {mask.shape}")
+    # bool and uint8 share the item size: view instead of a converted copy
+    data = mask.view(np.uint8) if mask.dtype == bool else mask.astype(np.uint8)
+    rle = _mask_api().encode(np.asfortranarray(data))
+    return {"size": [int(rle["size"][0]), int(rle["size"][1])],
+            "counts": rle["counts"].decode("ascii")}
+
+
+def rle_to_mask(rle: dict) -> np.ndarray:
+    """Boolean (H, W) mask of a COCO RLE (compressed ``str``/``bytes`` or uncompressed list)."""
+    mu = _mask_api()
+    h, w = (int(v) for v in rle["size"])
+    counts = rle["counts"]
+    if isinstance(counts, list):
+        obj = mu.frPyObjects({"size": [h, w], "counts": counts}, h, w)
+    else:
+        obj = {"size": [h, w], "counts": counts.encode("ascii") if isinstance(counts, str)
+               else counts}
+    return _decode(obj)
+
+
+def _decode(rle: dict) -> np.ndarray:
+    with warnings.catch_warnings():  # pycocotools' __array__ is not numpy-2 clean
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return _mask_api().decode(rle).astype(bool)
+
+
+def segm_to_mask(segm, height: int, width: int) -> np.ndarray:
+    """Boolean (height, width) mask of a COCO segmentation: RLE dict or list of polygons."""
+    mu = _mask_api()
+    if isinstance(segm, dict):
+        mask = rle_to_mask(segm)
+        if mask.shape != (height, width):
+            raise ValueError(f"RLE size {list(mask.shape)} != image size {[height, width]}")
+        return mask
+    polys = [list(map(float, p)) for p in segm]
+    if not polys:
+        return np.zeros((height, width), dtype=bool)
+    if any(len(p) < 6 or len(p) % 2 for p in polys):
+        raise ValueError("polygons need an even number (>= 6) of coordinates")
+    rles = mu.frPyObjects(polys, height, width)
+    return _decode(mu.merge(rles))
+
+
+def mask_to_polygons(mask) -> list[list[float]]:
+    """COCO polygons ``[[x1, y1, x2, y2, ...], ...]`` of a boolean (H, W) mask: the outer
+    contour of each connected part (``cv2.findContours``, ``RETR_EXTERNAL``).
+
+    The contours are traced on the mask upsampled 2x, so they run along pixel edges and a
+    single pixel or a one-pixel line still gives a valid polygon; :func:`segm_to_mask` of the
+    result gives back the mask exactly, except that holes are filled (outer contours only).
+
+    >>> m = np.zeros((4, 5), dtype=bool); m[1:3, 1:4] = True
+    >>> bool((segm_to_mask(mask_to_polygons(m), 4, 5) == m).all())
+    True
+    """
+    import cv2  # lazy: OpenCV is heavy and only the polygon output needs it
+
+    mask = np.asarray(mask, dtype=bool)
+    if mask.ndim != 2:
+        raise ValueError(f"mask must be 2-D (H, W), got shape {mask.shape}")
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if rows.size == 0:
+        return []
+    r0, c0 = rows[0], cols[0]
+    box = mask[r0:rows[-1] + 1, c0:cols[-1] + 1].astype(np.uint8)  # only the mask's box
+    up = np.repeat(np.repeat(box, 2, axis=0), 2, axis=1)
+    contours, _ = cv2.findContours(up, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    out = []
+    for c in contours:
+        xy = (c.reshape(-1, 2).astype(np.float64) + 0.5) / 2 + [c0, r0]
+        if len(xy) < 3:  # cannot happen on the 2x grid; guard the COCO minimum anyway
+            continue
+        out.append([round(float(v), 2) for v in xy.ravel()])
+    return out
+
+
+def encode_segm(mask, polygons: bool = False):
+    """A boolean (H, W) mask as a COCO segmentation: RLE, or polygons (module doc)."""
+    return mask_to_polygons(mask) if polygons else mask_to_rle(mask)
+
+
+def bbox_of_mask(mask) -> list[float]:
+    """COCO box ``[x, y, w, h]`` (pixels, x = column) of a boolean mask; zeros when empty."""
+    mask = np.asarray(mask, dtype=bool)
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return [0.0, 0.0, 0.0, 0.0]
+    cols = np.flatnonzero(mask.any(axis=0))
+    return [float(cols[0]), float(rows[0]), float(cols[-1] - cols[0] + 1),
+            float(rows[-1] - rows[0] + 1)]
+
+
+# ----------------------------------------------------------------------------- occlusion
+
+
+def _mask_overlaps(masks: Sequence[np.ndarray]) -> np.ndarray:
+    """``(K, K)`` bool: do masks i and j share a pixel (compared inside their common box)."""
+    k = len(masks)
+    boxes = []
+    for m in masks:
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        boxes.append((rows[0], rows[-1] + 1, cols[0], cols[-1] + 1) if len(rows) else None)
+    out = np.zeros((k, k), dtype=bool)
+    for i in range(k):
+        for j in range(i + 1, k):
+            if boxes[i] is None or boxes[j] is None:
+                continue
+            r0, r1 = max(boxes[i][0], boxes[j][0]), min(boxes[i][1], boxes[j][1])
+            c0, c1 = max(boxes[i][2], boxes[j][2]), min(boxes[i][3], boxes[j][3])
+            if r0 < r1 and c0 < c1 and np.any(masks[i][r0:r1, c0:c1] & masks[j][r0:r1, c0:c1]):
+                out[i, j] = out[j, i] = True
+    return out
+
+
+def occlusion_order(depths: Sequence[float], amodal_masks: Sequence[np.ndarray],
+                    hides=None) -> tuple[list[int], list[int]]:
+    """KINS ``(oco_id, ico_id)`` per instance of one image (definitions in the module doc).
+
+    ``depths`` (K,) sort front (small) to back; ``amodal_masks`` K boolean (H, W) masks.
+    ``hides``: optional ``(K, K)`` bool, ``hides[i, j]`` when instance i covers pixels of j's
+    amodal mask (an exact relation, e.g. a renderer's); for an overlapping pair it decides who
+    is in front where it is one-sided, the depths decide otherwise (and everywhere when the
+    relation has a cycle). Isolated instances get ``(0, 0)``.
+    """
+    k = len(depths)
+    if len(amodal_masks) != k:
+        raise ValueError(f"{k} depths but {len(amodal_masks)} masks")
+    if k == 0:
+        return [], []
+    overlap = _mask_overlaps([np.asarray(m, dtype=bool) for m in amodal_masks])
+    parent = list(range(k))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(*np.nonzero(np.triu(overlap, 1)), strict=True):
+        parent[find(int(i))] = find(int(j))
+    order = _front_to_back(depths, overlap, hides)
+    cluster_ids: dict[int, int] = {}
+    oco, ico = [0] * k, [0] * k
+    done: list[int] = []
+    for i in order:
+        if not overlap[i].any():
+            continue  # in no cluster: 0, 0
+        root = find(i)
+        cluster_ids.setdefault(root, len(cluster_ids) + 1)
+        oco[i] = cluster_ids[root]
+        # everything overlapping i and already placed is in front of it
+        ico[i] = 1 + max((ico[j] for j in done if overlap[i, j]), default=0)
+        done.append(i)
+    return oco, ico
+
+
+def _front_to_back(depths, overlap: np.ndarray, hides) -> list[int]:
+    """Instance indices front to back: by depth, or a topological order of ``hides`` on the
+    overlapping pairs where it is one-sided (depth breaking ties; depth alone on a cycle)."""
+    k = len(depths)
+    by_depth = sorted(range(k), key=lambda i: (float(depths[i]), i))
+    if hides is None:
+        return by_depth
+    hides = np.asarray(hides, dtype=bool).reshape(k, k)
+    rank = {i: r for r, i in enumerate(by_depth)}
+    # each pair gets one direction: the one-sided relation where there is one, else depth
+    front = {j: set() for j in range(k)}
+    for i, j in zip(*np.nonzero(np.triu(overlap, 1)), strict=True):
+        i, j = int(i), int(j)
+        if hides[i, j] != hides[j, i]:
+            a, b = (i, j) if hides[i, j] else (j, i)
+        else:
+            a, b = (i, j) if rank[i] < rank[j] else (j, i)
+        front[b].add(a)
+    sorter = graphlib.TopologicalSorter(front)
+    try:
+        sorter.prepare()
+    except graphlib.CycleError:
+        return by_depth
+    out = []
+    while sorter.is_active():
+        ready = sorted(sorter.get_ready(), key=rank.get)
+        out.extend(ready)
+        sorter.done(*ready)
+    return out
+
+
+def kins_annotation(ann_id: int, image_id: int, category_id: int, amodal_mask, visible_mask,
+                    oco_id: int, ico_id: int, track_id: int | None = None,
+                    polygons: bool = False) -> dict:
+    """One KINS annotation dict from boolean (H, W) amodal and visible masks (segmentations
+    as RLE, or as polygons with ``polygons``)."""
+    a = np.asarray(amodal_mask, dtype=bool)
+    v = np.asarray(visible_mask, dtype=bool)
+    if a.shape != v.shape:
+        raise ValueError(f"amodal mask {a.shape} and visible mask {v.shape} differ in size")
+    ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
+           "a_segm": encode_segm(a, polygons), "i_segm": encode_segm(v, polygons),
+           "a_bbox": bbox_of_mask(a), "i_bbox": bbox_of_mask(v),
+           "a_area": int(np.count_nonzero(a)), "i_area": int(np.count_nonzero(v)),
+           "oco_id": int(oco_id), "ico_id": int(ico_id), "iscrowd": 0}
+    if track_id is not None:
+        ann["track_id"] = int(track_id)
+    return ann
+
+
+def coco_annotation(ann_id: int, image_id: int, category_id: int, mask, score: float = 1.0,
+                    track_id: int | None = None, polygons: bool = False) -> dict:
+    """One COCO instance annotation dict from a boolean (H, W) mask (``segmentation`` RLE, or
+    polygons with ``polygons``)."""
+    m = np.asarray(mask, dtype=bool)
+    ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
+           "segmentation": encode_segm(m, polygons), "bbox": bbox_of_mask(m), "area": int(np.count_nonzero(m)),
+           "score": float(score), "iscrowd": 0}
+    if track_id is not None:
+        ann["track_id"] = int(track_id)
+    return ann
+
+
+def image_entry(image_id: int, sequence: str, frame: int, height: int, width: int,
+                file_name: str | None = None) -> dict:
+    """An ``images`` entry; ``file_name`` defaults to KITTI's ``SSSS/FFFFFF.png``."""
+    name = file_name if file_name is not None else f"{sequence}/{int(frame):06d}.png"
+    return {"id": int(image_id), "file_name": name,
+            "height": int(height), "width": int(width), "frame": int(frame)}
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def write_kins(path: str | Path, images: list[dict], annotations: list[dict],
+               categories: list[dict] | None = None) -> None:
+    """Write a KINS-format JSON file atomically (categories default to :data:`KINS_CATEGORIES`).
+
+    The content is validated first (as :func:`read_kins` does), so an invalid annotation
+    raises ``ValueError`` and nothing is written.
+    """
+    doc = {"images": list(images), "categories": list(categories or KINS_CATEGORIES),
+           "annotations": list(annotations)}
+    try:
+        _validate(doc, KINS_KEYS, ("a_segm", "i_segm"))
+    except _Invalid as exc:
+        raise ValueError(f"invalid KINS content: {exc}") from None
+    atomic_write_json(path, doc, indent=None)
+
+
+def read_kins(path: str | Path) -> dict[str, list[dict]]:
+    """Read and validate a KINS JSON file; returns ``{"images", "categories", "annotations"}``.
+
+    Every annotation must have :data:`KINS_KEYS`, refer to an existing image and category, and
+    carry masks (RLE or polygons) of its image's size. ``track_id`` and ``iscrowd`` are
+    optional (``iscrowd`` defaults to 0). Problems raise :class:`DataError` naming the file and
+    the annotation index.
+    """
+    doc = _load(path)
+    try:
+        _validate(doc, KINS_KEYS, ("a_segm", "i_segm"))
+    except _Invalid as exc:
+        raise DataError(path, str(exc)) from None
+    for ann in doc["annotations"]:
+        ann.setdefault("iscrowd", 0)
+    return doc
+
+
+def write_coco_instances(path: str | Path, images: list[dict], annotations: list[dict],
+                         categories: list[dict] | None = None) -> None:
+    """Write COCO instance-format JSON (visible 2D masks, as a segmenter outputs) atomically."""
+    doc = {"images": list(images), "categories": list(categories or KINS_CATEGORIES),
+           "annotations": list(annotations)}
+    try:
+        _validate(doc, COCO_KEYS, ("segmentation",))
+    except _Invalid as exc:
+        raise ValueError(f"invalid COCO content: {exc}") from None
+    atomic_write_json(path, doc, indent=None)
+
+
+def read_coco_instances(path: str | Path) -> dict[str, list[dict]]:
+    """Read COCO instance-format JSON; polygon segmentations are converted to RLE.
+
+    Returns ``{"images", "categories", "annotations"}``; every annotation ends with an RLE
+    ``segmentation`` plus ``bbox``, ``area`` (computed when absent), ``score`` (1.0 when
+    absent) and ``iscrowd`` (0 when absent).
+    """
+    doc = _load(path)
+    try:
+        _validate(doc, COCO_KEYS, ("segmentation",))
+    except _Invalid as exc:
+        raise DataError(path, str(exc)) from None
+    sizes = {img["id"]: (int(img["height"]), int(img["width"])) for img in doc["images"]}
+    for i, ann in enumerate(doc["annotations"]):
+        if isinstance(ann["segmentation"], dict) and "area" in ann and "bbox" in ann:
+            mask = None
+        else:
+            try:
+                mask = segm_to_mask(ann["segmentation"], *sizes[ann["image_id"]])
+            except (ValueError, TypeError) as exc:
+                raise DataError(path, f"annotations[{i}].segmentation: {exc}") from None
+            ann["segmentation"] = mask_to_rle(mask)
+            ann.setdefault("area", int(mask.sum()))
+            ann.setdefault("bbox", bbox_of_mask(mask))
+        ann.setdefault("score", 1.0)
+        ann.setdefault("iscrowd", 0)
+    return doc
+
+
+def annotation_mask(ann: dict, key: str, image: dict) -> np.ndarray:
+    """The boolean (H, W) mask of ``ann[key]`` (RLE or polygons) on its ``image`` entry."""
+    return segm_to_mask(ann[key], int(image["height"]), int(image["width"]))
+
+
+def annotations_by_image(doc: dict[str, list[dict]]) -> dict[int, list[dict]]:
+    """Annotations grouped by ``image_id`` (every image present, possibly with an empty list)."""
+    out: dict[int, list[dict]] = {img["id"]: [] for img in doc["images"]}
+    for ann in doc["annotations"]:
+        out[ann["image_id"]].append(ann)
+    return out
+
+
+class _Invalid(Exception):
+    pass
+
+
+def _load(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DataError(path, "file not found") from None
+    except json.JSONDecodeError as exc:
+        raise DataError(path, f"invalid JSON ({exc})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(path, f"unreadable file ({exc})") from None
+    if not isinstance(doc, dict):
+        raise DataError(path, "expected a JSON object with images, categories, annotations")
+    return doc
+
+
+def _validate(doc: dict, ann_keys: Sequence[str], segm_keys: Sequence[str]) -> None:
+    for key in ("images", "categories", "annotations"):
+        if not isinstance(doc.get(key), list):
+            raise _Invalid(f"missing or non-list top-level key '{key}'")
+    sizes = {}
+    for i, img in enumerate(doc["images"]):
+        missing = [k for k in IMAGE_KEYS if not isinstance(img, dict) or k not in img]
+        if missing:
+            raise _Invalid(f"images[{i}]: missing key(s) {missing}")
+        if img["id"] in sizes:
+            raise _Invalid(f"images[{i}]: duplicate image id {img['id']}")
+        sizes[img["id"]] = (int(img["height"]), int(img["width"]))
+    cats = set()
+    for i, cat in enumerate(doc["categories"]):
+        if not isinstance(cat, dict) or "id" not in cat or "name" not in cat:
+            raise _Invalid(f"categories[{i}]: needs 'id' and 'name'")
+        cats.add(cat["id"])
+    ids = set()
+    for i, ann in enumerate(doc["annotations"]):
+        missing = [k for k in ann_keys if not isinstance(ann, dict) or k not in ann]
+        if missing:
+            raise _Invalid(f"annotations[{i}]: missing key(s) {missing}")
+        if ann["id"] in ids:
+            raise _Invalid(f"annotations[{i}]: duplicate annotation id {ann['id']}")
+        ids.add(ann["id"])
+        if ann["image_id"] not in sizes:
+            raise _Invalid(f"annotations[{i}]: unknown image_id {ann['image_id']}")
+        if ann["category_id"] not in cats:
+            raise _Invalid(f"annotations[{i}]: unknown category_id {ann['category_id']}")
+        for key in segm_keys:
+            _check_segm(ann[key], sizes[ann["image_id"]], f"annotations[{i}].{key}")
+
+
+def _check_segm(segm, size: tuple[int, int], where: str) -> None:
+    if isinstance(segm, dict):
+        if "size" not in segm or "counts" not in segm:
+            raise _Invalid(f"{where}: RLE needs 'size' and 'counts'")
+        if tuple(int(v) for v in segm["size"]) != size:
+            raise _Invalid(f"{where}: RLE size {list(segm['size'])} != image size {list(size)}")
+    elif isinstance(segm, list):
+        if not all(isinstance(p, list) and len(p) % 2 == 0 for p in segm):
+            raise _Invalid(f"{where}: polygons must be lists of x, y pairs")
+    else:
+        raise _Invalid(f"{where}: expected an RLE dict or a list of polygons")

@@ -1,0 +1,106 @@
+"""The demo report: sections of markdown, images and links, written as markdown and as HTML.
+
+:func:`md_to_html` converts the small markdown subset the sections use (tables, bullet lists,
+paragraphs, ``code``); there is no markdown dependency.
+
+>>> md_to_html("| a | b |\\n|---|---|\\n| 1 | `x` |")
+'<table><tr><th>a</th><th>b</th></tr><tr><td>1</td><td><code>x</code></td></tr></table>'
+"""
+
+from __future__ import annotations
+
+import html
+from dataclasses import dataclass, field
+
+
+@dataclass
+class Section:
+    """One part of the report: markdown text, images and links (paths relative to DIR)."""
+
+    title: str
+    markdown: str = ""
+    images: list[tuple[str, str]] = field(default_factory=list)   # (caption, path)
+    links: list[tuple[str, str]] = field(default_factory=list)    # (label, path)
+
+
+def _inline(s: str) -> str:
+    s = html.escape(s)
+    while s.count("`") >= 2:
+        s = s.replace("`", "<code>", 1).replace("`", "</code>", 1)
+    return s
+
+
+def _table_html(lines: list[str]) -> str:
+    rows = [r for r in lines if not set(r.replace("|", "").strip()) <= set("-: ")]
+    cells = [[_inline(c.strip()) for c in r.strip().strip("|").split("|")] for r in rows]
+    return ("<table><tr>" + "".join(f"<th>{c}</th>" for c in cells[0]) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in cells[1:])
+            + "</table>")
+
+
+def md_to_html(text: str) -> str:
+    """HTML of the markdown subset the sections use: tables, bullet lists, paragraphs, `code`."""
+    out: list[str] = []
+    table: list[str] = []
+    items: list[str] = []
+
+    def flush():
+        if table:
+            out.append(_table_html(table))
+            table.clear()
+        if items:
+            out.append("<ul>" + "".join(f"<li>{_inline(i)}</li>" for i in items) + "</ul>")
+            items.clear()
+
+    for line in text.splitlines():
+        if line.startswith("|"):
+            table.append(line)
+        elif line.startswith("- "):
+            items.append(line[2:])
+        else:
+            flush()
+            if line.strip():
+                out.append(f"<p>{_inline(line)}</p>")
+    flush()
+    return "\n".join(out)
+
+
+def report_markdown(sections: list[Section], timings: list[tuple[str, float]]) -> str:
+    """``report.md``: a fixed introduction, every section, then the step timings (s)."""
+    parts = ["# seqshape demo\n",
+             "Sequential joint shape and pose estimation (GRU over PointNet features) beside "
+             "the per-frame baseline, on synthetic LiDAR tracks.\n"]
+    for s in sections:
+        parts.append(f"## {s.title}\n\n{s.markdown}")
+        parts += [f"![{cap}]({path})\n" for cap, path in s.images]
+        parts += [f"- [{label}]({path})" for label, path in s.links]
+        parts.append("")
+    parts.append("## Timings\n")
+    parts += [f"- {name}: {sec:.1f} s" for name, sec in timings]
+    return "\n".join(parts) + "\n"
+
+
+_STYLE = ("body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}"
+          "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:4px 8px}"
+          "img{max-width:100%}code{background:#eee;padding:0 3px}")
+
+
+def _section_html(s: Section) -> list[str]:
+    body = [f"<h2>{html.escape(s.title)}</h2>{md_to_html(s.markdown)}"]
+    body += [f'<figure><img src="{html.escape(p)}" alt="{html.escape(c)}">'
+             f"<figcaption>{html.escape(c)}</figcaption></figure>" for c, p in s.images]
+    if s.links:
+        body.append("<ul>" + "".join(f'<li><a href="{html.escape(p)}">{html.escape(t)}</a>'
+                                     f"</li>" for t, p in s.links) + "</ul>")
+    return body
+
+
+def report_html(sections: list[Section], timings: list[tuple[str, float]]) -> str:
+    """``index.html``: the same content as :func:`report_markdown`, one self-contained page."""
+    body = ["<h1>seqshape demo</h1>"]
+    for s in sections:
+        body += _section_html(s)
+    body.append("<h2>Timings</h2><ul>" + "".join(
+        f"<li>{html.escape(n)}: {sec:.1f} s</li>" for n, sec in timings) + "</ul>")
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>seqshape demo</title>"
+            f"<style>{_STYLE}</style></head><body>{''.join(body)}</body></html>\n")

@@ -1,0 +1,181 @@
+"""Evaluate a track dataset and write every output file (``seqshape evaluate``, the demo).
+
+Writes into the output folder: ``metrics.json``, ``metrics.md`` (ours beside the paper's Table
+I), ``per_frame.csv``, ``errors_vs_detections.png``, ``errors_vs_distance.png`` and
+``track_view.html`` (interactive 3D view of one track). See docs/evaluation.md.
+
+Real Track datasets (``seqshape tracks``; their tracks' meta say ``source: "real"``) are
+evaluated the same way, with the classical box fit (:class:`seqshape.model.boxfit
+.BoxFitEstimator`) as a third row by default and the breakdowns by class, distance and points
+per frame in the reports. ``offline`` runs the sequential model offline
+(:mod:`seqshape.model.offline`: every frame's estimate uses the whole track, future frames
+too), as the auto-labeller does; the per-frame baseline and the box fit have no state to share
+between frames and are unchanged by it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from seqshape._io import atomic_write_text, read_text
+from seqshape.data import TrackDataset
+from seqshape.errors import ConfigError
+from seqshape.evaluation.html import write_track_html
+from seqshape.evaluation.plots import write_plots
+from seqshape.evaluation.report import write_metrics
+from seqshape.evaluation.runner import evaluate_tracks
+from seqshape.model.boxfit import BoxFitEstimator
+from seqshape.model.estimator import Estimator
+from seqshape.model.offline import OfflineEstimator
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class EvaluateConfig:
+    """Options of :func:`evaluate_dataset` (the flags of ``seqshape evaluate``).
+
+    split: split to evaluate: a split name, 'all', or 'auto' ('val' when the dataset has one,
+        else all tracks).
+    boxfit: add the classical box fit as a third method (None: on for real datasets, off for
+        synthetic ones).
+    boxfit_method: box fit: 'lshape' (L-shape fit, Zhang et al. 2017) or 'min_area_rect'
+        (cv2 minimum-area rectangle).
+    max_tracks: evaluate the first N tracks only (None: all).
+    emd_every: EMD on every K-th frame of each track (0: no EMD).
+    emd_points: points per cloud for the exact EMD.
+    workers: EMD processes.
+    batch_tracks: tracks stepped together per forward pass.
+    floor: CD floor method: 'auto' (re-sample the mesh if known), 'resample' or 'split'.
+    view: track id drawn in track_view.html, 'auto' (the longest track) or 'none'.
+    seed: seed of the EMD subsets, the CD floor and the box fit.
+    offline: run the sequential model offline: every frame's estimate uses the whole track,
+        future frames too (seqshape.model.offline; the per-frame baseline and the box fit are
+        unchanged by it).
+    hints: feed the networks each track's class and ego poses, as a user's pipeline would
+        (off: the points alone, and the heading step then never acts; docs/evaluation.md).
+    """
+
+    split: str = "auto"
+    boxfit: bool | None = None
+    boxfit_method: str = "lshape"
+    max_tracks: int | None = None
+    emd_every: int = 1
+    emd_points: int = 1024
+    workers: int = 2
+    batch_tracks: int = 64
+    floor: str = "auto"
+    view: str = "auto"
+    seed: int = 0
+    offline: bool = False
+    hints: bool = True
+
+    def __post_init__(self):
+        if self.max_tracks is not None and self.max_tracks < 1:
+            raise ConfigError("--max-tracks must be >= 1")
+
+
+def load_estimator(spec: str, kind: str):
+    """:meth:`Estimator.load` of ``spec`` ('pretrained': the shipped weights of ``kind``),
+    checked to be of ``kind``; the error names the flag that takes the other kind."""
+    est = Estimator.load(kind if spec == "pretrained" else spec)
+    if est.kind != kind:
+        other = "baseline" if kind == "sequential" else "sequential"
+        flag = "--baseline" if kind == "sequential" else "--checkpoint"
+        raise ConfigError(f"{spec} holds a {other} model, not a {kind} one; pass it with {flag}")
+    return est
+
+
+def select_split(dataset, name: str):
+    """The tracks to evaluate: split ``name``, ``"all"``, or ``"auto"`` ("val" when any track
+    is in it, else every track: real datasets may have one split or none)."""
+    if name == "auto":
+        if any(e.get("split") == "val" for e in dataset.entries):
+            return dataset.split("val")
+        log.info("%s has no 'val' split: evaluating all %d tracks", dataset.path, len(dataset))
+        name = "all"
+    if name == "all":
+        if not dataset.entries:
+            raise ConfigError(f"{dataset.path}: the dataset has no tracks")
+        return TrackDataset(dataset.path, _entries=list(dataset.entries))
+    return dataset.split(name)
+
+
+def dataset_is_real(dataset) -> bool:
+    """Whether the dataset's first track comes from a real log (``meta["source"]``)."""
+    return len(dataset) > 0 and dataset[0].meta.get("source") == "real"
+
+
+def choose_view_track(dataset, spec: str, max_tracks: int | None):
+    """The track drawn in track_view.html: by id, the longest (``auto``), or None."""
+    if spec == "none":
+        return None
+    n = len(dataset) if max_tracks is None else min(len(dataset), max_tracks)
+    if spec != "auto":
+        try:
+            return dataset.get(spec)
+        except KeyError as exc:
+            raise ConfigError(str(exc)) from None
+    entries = dataset.entries[:n]
+    best = max(range(n), key=lambda i: (entries[i].get("n_frames", 0), -i))
+    return dataset[best]
+
+
+def evaluate_to(out: Path, dataset, estimators: dict, max_tracks: int | None = None,
+                emd_every: int = 1, emd_points: int = 1024, workers: int = 2,
+                batch_tracks: int = 64, floor: str = "auto", view: str = "auto",
+                seed: int = 0, hints: bool = True) -> dict:
+    """Run the evaluation and write every output file into ``out``; returns the summary."""
+    t0 = time.perf_counter()
+    result = evaluate_tracks(estimators, dataset, max_tracks=max_tracks, emd_points=emd_points,
+                             emd_every=emd_every, batch_tracks=batch_tracks, workers=workers,
+                             floor=floor, seed=seed, hints=hints)
+    result.settings["seconds"] = round(time.perf_counter() - t0, 1)
+    result.settings["data"] = str(dataset.path)
+    summary = write_metrics(out, result)
+    mode_note(out / "metrics.md", result.settings.get("modes", {}))
+    write_plots(out, result)
+    track = choose_view_track(dataset, view, max_tracks)
+    if track is not None:
+        write_track_html(out / "track_view.html", track, estimators)
+    return summary
+
+
+def mode_note(path: Path, modes: dict) -> None:
+    """Append the methods' modes (online / offline) to ``metrics.md``."""
+    if not modes:
+        return
+    text = ", ".join(f"{m} {v}" for m, v in modes.items())
+    atomic_write_text(path, read_text(path, "metrics") + f"- Mode: {text} (offline: every "
+                      f"frame's estimate uses the whole track; docs/model.md).\n")
+
+
+def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfig) -> dict:
+    """The methods to score: the sequential model (offline when asked), the baseline, and the
+    box fit when ``cfg.boxfit`` (None: for real datasets)."""
+    estimators = {"sequential": load_estimator(checkpoint, "sequential"),
+                  "baseline": load_estimator(baseline, "baseline")}
+    if cfg.offline:
+        estimators["sequential"] = OfflineEstimator(estimators["sequential"])
+    use_boxfit = dataset_is_real(dataset) if cfg.boxfit is None else cfg.boxfit
+    if use_boxfit:
+        k = estimators["sequential"].model.cfg.num_complete
+        estimators["boxfit"] = BoxFitEstimator(method=cfg.boxfit_method, num_complete=k,
+                                               seed=cfg.seed)
+    return estimators
+
+
+def evaluate_dataset(data, checkpoint: str, baseline: str, out,
+                     cfg: EvaluateConfig | None = None) -> dict:
+    """``seqshape evaluate``: score the sequential model beside the baseline (and the box fit)
+    on the tracks of the dataset folder ``data`` chosen by ``cfg.split``, writing every output
+    file into ``out`` (module doc); returns the summary of :func:`write_metrics`."""
+    cfg = EvaluateConfig() if cfg is None else cfg
+    dataset = select_split(TrackDataset(data), cfg.split)
+    estimators = build_estimators(checkpoint, baseline, dataset, cfg)
+    return evaluate_to(Path(out), dataset, estimators, cfg.max_tracks, cfg.emd_every,
+                       cfg.emd_points, cfg.workers, cfg.batch_tracks, cfg.floor, cfg.view,
+                       cfg.seed, cfg.hints)

@@ -1,0 +1,44 @@
+"""The options that name one driving log, shared by ``seqshape label`` and ``export-tracks``.
+
+``--dataset {kitti,av2,nuscenes} --root DIR --sequence ID`` opens the log
+(:func:`seqshape.data.sequence.open_log`); ``--kitti DIR`` is short for ``--dataset kitti
+--root DIR``; ``--max-frames F`` keeps its first F frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from seqshape.data.sequence import DATASETS, open_log
+from seqshape.errors import ConfigError
+
+
+def add_log_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--dataset``, ``--root``, ``--kitti``, ``--sequence`` and ``--max-frames``."""
+    parser.add_argument("--dataset", choices=list(DATASETS), default=None,
+                        help="dataset format of --root (default kitti)")
+    parser.add_argument("--root", type=Path, default=None,
+                        help="dataset root folder (or --kitti; no default)")
+    parser.add_argument("--kitti", type=Path, default=None, metavar="DIR",
+                        help="KITTI tracking root folder (= --dataset kitti --root DIR; no "
+                             "default)")
+    parser.add_argument("--sequence", required=True,
+                        help="log id: KITTI sequence (0003), Argoverse 2 log id, nuScenes scene")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="F",
+                        help="use only the first F frames (the sequence as if it ended there; "
+                             "default: all)")
+
+
+def open_args_log(args: argparse.Namespace):
+    """The log of ``--dataset/--root`` or ``--kitti``, restricted to ``--max-frames``."""
+    if args.kitti is not None:
+        if args.root is not None or args.dataset not in (None, "kitti"):
+            raise ConfigError("--kitti DIR is short for --dataset kitti --root DIR: give one "
+                              "or the other")
+        dataset, root = "kitti", args.kitti
+    elif args.root is not None:
+        dataset, root = args.dataset or "kitti", args.root
+    else:
+        raise ConfigError("give the data: --dataset NAME --root DIR (or --kitti DIR)")
+    return open_log(dataset, root, args.sequence).restrict(args.max_frames)

@@ -1,0 +1,222 @@
+"""seqshape._runner: settings check, resume, shards and the worker pool, on a toy job.
+
+The toy job writes one file per item, its bytes drawn from ``default_rng([SEED, item])``, the
+way ``generate`` and ``scenes`` seed their items; the references are plain serial runs and
+hand-listed shards.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from seqshape._io import atomic_write_bytes
+from seqshape._runner import (
+    check_settings,
+    parse_shard,
+    plan_work,
+    run_pool,
+    shard_items,
+)
+from seqshape.errors import ConfigError, DataError
+
+SEED = 7
+_OFFSET = {"value": 0}
+
+
+class _Stop(Exception):
+    """Raised by the toy job to stop a run part-way (an interrupted run)."""
+
+
+def _write_item(unit) -> int:
+    folder, i = unit
+    atomic_write_bytes(Path(folder) / f"{i:03d}.bin", np.random.default_rng([SEED, i]).bytes(97))
+    return i
+
+
+def _write_until(unit) -> int:
+    folder, i, stop_at = unit
+    if i == stop_at:
+        raise _Stop(i)
+    return _write_item((folder, i))
+
+
+def _set_offset(value: int) -> None:
+    _OFFSET["value"] = value
+
+
+def _offset_square(x: int) -> tuple[int, int]:
+    return x, x * x + _OFFSET["value"]
+
+
+def _sigint_ignored(_x) -> bool:
+    return signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+
+
+def _fail_on_three(x: int) -> int:
+    if x == 3:
+        raise ValueError("item 3 is broken")
+    return x
+
+
+def _is_done(folder: Path):
+    return lambda i: (folder / f"{i:03d}.bin").is_file()
+
+
+def run_job(folder: Path, n: int = 9, shard=(1, 1), workers: int = 1) -> list[int]:
+    """The toy job over items ``0..n-1``: settings check, plan, pool; the items it made."""
+    folder.mkdir(parents=True, exist_ok=True)
+    check_settings(folder, "job.json", {"seed": SEED, "n": n}, made="toy items")
+    work = plan_work(range(n), _is_done(folder), shard)
+    return sorted(run_pool(_write_item, [(str(folder), i) for i in work.todo], workers))
+
+
+def folder_bytes(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+# ----------------------------------------------------------------------------- shards
+
+
+def test_parse_shard():
+    assert parse_shard("1/1") == (1, 1)
+    assert parse_shard(" 3/4") == (3, 4)
+    for bad in ("2", "a/b", "1/2/3", ""):
+        with pytest.raises(ConfigError, match="K/N"):
+            parse_shard(bad)
+    for bad in ("0/2", "3/2", "-1/2"):
+        with pytest.raises(ConfigError, match="1 <= K <= N"):
+            parse_shard(bad)
+
+
+def test_shards_partition_the_items():
+    items = list("abcdefghij")
+    assert shard_items(items, (1, 3)) == ["a", "d", "g", "j"]  # positions 0, 3, 6, 9
+    assert shard_items(items, (2, 3)) == ["b", "e", "h"]
+    assert shard_items(items, (3, 3)) == ["c", "f", "i"]
+    for n in (1, 2, 3, 4, 11):
+        parts = [shard_items(items, (k, n)) for k in range(1, n + 1)]
+        assert sorted(sum(parts, [])) == items
+        assert sum(len(p) for p in parts) == len(items)  # disjoint
+    with pytest.raises(ConfigError):
+        shard_items(items, (0, 2))
+
+
+def test_sharded_runs_together_equal_the_full_run(tmp_path):
+    made = run_job(tmp_path / "full")
+    assert made == list(range(9))
+    for k in (1, 2, 3):
+        assert run_job(tmp_path / "sharded", shard=(k, 3)) == [i for i in range(9) if i % 3 == k - 1]
+    assert folder_bytes(tmp_path / "sharded") == folder_bytes(tmp_path / "full")
+    assert run_job(tmp_path / "sharded") == []  # nothing left for an unsharded rerun
+
+
+# ----------------------------------------------------------------------------- resume
+
+
+def test_plan_work_skips_done_items():
+    work = plan_work(range(10), lambda i: i in (2, 3, 8), shard=(1, 2))
+    assert work.items == [0, 2, 4, 6, 8]
+    assert work.done == [2, 8]
+    assert work.todo == [0, 4, 6]
+
+
+def test_interrupted_run_resumes_to_the_same_bytes(tmp_path):
+    run_job(tmp_path / "once")
+    part = tmp_path / "part"
+    part.mkdir()
+    check_settings(part, "job.json", {"seed": SEED, "n": 9}, made="toy items")
+    with pytest.raises(_Stop):
+        list(run_pool(_write_until, [(str(part), i, 5) for i in range(9)]))
+    assert sorted(p.name for p in part.glob("*.bin")) == [f"{i:03d}.bin" for i in range(5)]
+    assert not list(part.glob(".*"))  # atomic writes leave no temporary file
+    before = {p.name: p.stat().st_mtime_ns for p in part.glob("*.bin")}
+    assert run_job(part) == [5, 6, 7, 8]  # only the missing items are made
+    assert {name: (part / name).stat().st_mtime_ns for name in before} == before
+    assert folder_bytes(part) == folder_bytes(tmp_path / "once")
+
+
+# ----------------------------------------------------------------------------- settings
+
+
+def test_settings_are_written_then_checked(tmp_path):
+    check_settings(tmp_path, "s.json", {"seed": 1, "n": [1, 2]}, made="toy items")
+    assert json.loads((tmp_path / "s.json").read_text()) == {"seed": 1, "n": [1, 2]}
+    check_settings(tmp_path, "s.json", {"seed": 1, "n": [1, 2]})  # a resume: accepted
+    with pytest.raises(ConfigError) as info:
+        check_settings(tmp_path, "s.json", {"seed": 2, "n": [1, 2]}, made="toy items")
+    msg = str(info.value)
+    assert "seed: 1 there vs 2 now" in msg and str(tmp_path / "s.json") in msg
+    assert "n:" not in msg  # only the fields that differ are listed
+    with pytest.raises(ConfigError, match="extra: None there vs 3 now"):
+        check_settings(tmp_path, "s.json", {"seed": 1, "n": [1, 2], "extra": 3})
+
+
+def test_settings_keys_limit_the_comparison(tmp_path):
+    (tmp_path / "s.json").write_text(json.dumps({"seed": 1, "generator": "old"}))
+    check_settings(tmp_path, "s.json", {"seed": 1, "generator": "new"}, keys=("seed",),
+                   write=False)
+    with pytest.raises(ConfigError, match="seed"):
+        check_settings(tmp_path, "s.json", {"seed": 5, "generator": "old"}, keys=("seed",))
+    assert json.loads((tmp_path / "s.json").read_text())["generator"] == "old"
+
+
+def test_settings_refuse_occupied_and_unreadable_folders(tmp_path):
+    with pytest.raises(ConfigError, match="already holds toy items but no s.json"):
+        check_settings(tmp_path, "s.json", {"seed": 1}, made="toy items", occupied=True)
+    assert not (tmp_path / "s.json").exists()
+    check_settings(tmp_path, "s.json", {"seed": 1}, write=False)
+    assert not (tmp_path / "s.json").exists()
+    for text in ("{not json", "[1, 2]"):
+        (tmp_path / "s.json").write_text(text)
+        with pytest.raises(DataError) as info:
+            check_settings(tmp_path, "s.json", {"seed": 1})
+        assert info.value.path == str(tmp_path / "s.json")
+
+
+def test_run_job_refuses_other_settings(tmp_path):
+    run_job(tmp_path, n=3)
+    with pytest.raises(ConfigError, match="n: 3 there vs 4 now"):
+        run_job(tmp_path, n=4)
+
+
+# ----------------------------------------------------------------------------- pool
+
+
+def test_pool_results_equal_the_serial_ones(tmp_path):
+    serial = list(run_pool(_offset_square, range(6), 1, initializer=_set_offset,
+                           initargs=(10,)))
+    assert serial == [(x, x * x + 10) for x in range(6)]  # in order, initializer run here
+    pooled = list(run_pool(_offset_square, range(6), 2, initializer=_set_offset,
+                           initargs=(10,)))
+    assert sorted(pooled) == serial
+    run_job(tmp_path / "serial", n=6, workers=1)
+    run_job(tmp_path / "pooled", n=6, workers=2)
+    assert folder_bytes(tmp_path / "pooled") == folder_bytes(tmp_path / "serial")
+
+
+def test_pool_workers_leave_ctrl_c_to_the_parent():
+    assert all(run_pool(_sigint_ignored, range(2), 2))
+    assert signal.getsignal(signal.SIGINT) != signal.SIG_IGN  # the parent still gets Ctrl-C
+
+
+def test_pool_errors_reach_the_caller_and_stop_the_pool():
+    with pytest.raises(ValueError, match="item 3"):
+        list(run_pool(_fail_on_three, range(6), 2))
+    with pytest.raises(ValueError, match="item 3"):
+        list(run_pool(_fail_on_three, range(6), 1))
+
+
+def test_pool_progress_weights_and_bad_workers(monkeypatch):
+    monkeypatch.setenv("SEQSHAPE_PROGRESS", "0")
+    seen = []
+    out = list(run_pool(_offset_square, [1, 2, 3], 1, weight=lambda u, r: seen.append(
+        (u, r)) or u, total=6))
+    assert [r for _, r in seen] == out and [u for u, _ in seen] == [1, 2, 3]
+    with pytest.raises(ConfigError, match="workers"):
+        list(run_pool(_offset_square, [1], 0))
+    assert list(run_pool(_offset_square, [], 3)) == []
