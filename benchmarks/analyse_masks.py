@@ -16,7 +16,7 @@ import numpy as np
 from _bench import print_table
 
 from seqshape.amodal.fallback import convex_fill
-from seqshape.amodal.kins import read_coco_instances, read_kins, rle_to_mask
+from seqshape.data.kins import read_coco_instances, read_kins, rle_to_mask
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -12,9 +12,10 @@ import argparse
 import numpy as np
 from _bench import print_table
 
-from seqshape.amodal.labeler import gt_track_inputs, load_estimator, open_sequence
+from seqshape.amodal.labeler import gt_track_inputs, open_sequence
 from seqshape.amodal.refine import complete_tracks
 from seqshape.geometry import sensor_to_canonical
+from seqshape.model.estimator import Estimator
 
 
 def main() -> None:
@@ -26,7 +27,7 @@ def main() -> None:
     args = ap.parse_args()
     seq = open_sequence(args.scenes, args.sequence, args.frames)
     _, inputs = gt_track_inputs(seq)
-    comps = complete_tracks(load_estimator(args.checkpoint), inputs, "smooth")
+    comps = complete_tracks(Estimator.load(args.checkpoint), inputs, "smooth")
     rows = []
     for inp, comp in zip(inputs, comps, strict=True):
         i = len(inp.frames) // 2  # the track's middle frame

@@ -41,7 +41,9 @@ from pathlib import Path
 import numpy as np
 from _bench import print_table
 
+from seqshape._io import atomic_write_json
 from seqshape.data import Track, TrackDataset
+from seqshape.errors import ConfigError
 from seqshape.evaluation import detection_span, evaluate_tracks
 from seqshape.evaluation.metrics import flip_stats
 from seqshape.evaluation.report import (
@@ -52,6 +54,7 @@ from seqshape.evaluation.report import (
     method_summary,
 )
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+from seqshape.model.estimator import Estimator
 
 #: Row keys (``--rows``) and their names in the tables.
 ROWS = {"baseline": "baseline", "sequential": "sequential", "heading": "seq, heading step",
@@ -115,16 +118,6 @@ def accumulate_track(track: Track, num_points: int, rng: np.random.Generator) ->
         points.append(canonical_to_sensor(pool[np.sort(idx)], track.poses[t]).astype(np.float32))
     return Track(track.track_id, points, track.poses, track.complete, track.size,
                  track.timestamps, dict(track.meta))
-
-
-def load_estimator(spec: str, kind: str, threads: int):
-    from seqshape.model.estimator import Estimator
-
-    est = (Estimator.from_pretrained(kind, threads=threads) if spec == "pretrained"
-           else Estimator.from_checkpoint(spec, threads=threads))
-    if est.kind != kind:
-        sys.exit(f"{spec} holds a {est.kind} model, expected a {kind} one")
-    return est
 
 
 def restore_counts(rec: dict[str, np.ndarray], tracks: list[Track]) -> None:
@@ -249,14 +242,15 @@ def main() -> int:
     n = len(split) if args.limit is None else min(args.limit, len(split))
     tracks = [split[i] for i in range(n)]
     tracks = [tr for tr in tracks if detection_span(tr) is not None]
-    seq = load_estimator(args.checkpoint, "sequential", args.threads)
-    base = load_estimator(args.baseline, "baseline", args.threads)
+    try:
+        seq = Estimator.load(args.checkpoint, kind="sequential", threads=args.threads)
+        base = Estimator.load(args.baseline, kind="baseline", threads=args.threads)
+    except ConfigError as exc:  # a wrong or missing model: say so without a traceback
+        sys.exit(str(exc))
     summary = summarise(run_rows(tracks, seq, base, rows, args.emd_every, args.workers,
                                  args.seed))
     print_tables(summary)
     if args.json:
-        from seqshape._io import atomic_write_json
-
         atomic_write_json(args.json, {"settings": {k: str(v) for k, v in vars(args).items()},
                                       "rows": summary})
     return 0

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 from _bench import bench_parser, print_table, time_it
 
-from seqshape.amodal.kins import mask_to_polygons, mask_to_rle, rle_to_mask, segm_to_mask
 from seqshape.camera import kitti_default_calib, project_points
-from seqshape.data.crop import crop_vehicle
-from seqshape.data.kitti import crop_box, read_velodyne, write_velodyne
+from seqshape.data.crop import crop_box, crop_vehicle
+from seqshape.data.kins import mask_to_polygons, mask_to_rle, rle_to_mask, segm_to_mask
+from seqshape.data.kitti import read_velodyne, write_velodyne
 
 
 def main():

@@ -20,12 +20,16 @@ never part of the repository). Timing is not the point here; ``bm_tracks.py`` ti
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import sys
 import tempfile
 from pathlib import Path
 
 from _bench import print_table
+
+from seqshape.cli import main as seqshape_main
 
 METHODS = ("sequential", "baseline", "boxfit")
 
@@ -36,13 +40,8 @@ def _f(v, digits: int = 1) -> str:
 
 def _quiet(argv: list[str]) -> int:
     """``seqshape ARGV`` with its printed report swallowed (the tables below say it shorter)."""
-    import contextlib
-    import io
-
-    from seqshape.cli import main
-
     with contextlib.redirect_stdout(io.StringIO()):
-        return main(argv)
+        return seqshape_main(argv)
 
 
 def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> None:

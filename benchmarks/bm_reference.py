@@ -34,6 +34,8 @@ os.environ.setdefault("SEQSHAPE_PROGRESS", "0")
 from seqshape.data import TrackDataset  # noqa: E402
 from seqshape.data.reference import NoReferenceError, accumulated_reference  # noqa: E402
 from seqshape.evaluation.metrics import cd_floor, nearest_distances  # noqa: E402
+from seqshape.sim.generate import generate_dataset, preset_config  # noqa: E402
+from seqshape.vehicles import procedural_vehicle, sample_outer_surface  # noqa: E402
 
 VARIANTS = {"default": {}, "no mirror": {"mirror": False}, "no outlier removal":
             {"outlier_std": None}}
@@ -45,8 +47,6 @@ def ensure_dataset(path: Path, preset: str, seed: int) -> None:
     """Generate the shrunk ``preset`` into ``path`` unless a dataset is already there."""
     if (path / "manifest.json").exists():
         return
-    from seqshape.sim.generate import generate_dataset, preset_config
-
     cfg = preset_config(preset, n_vehicles=30, n_val_vehicles=15, tracks_per_vehicle=4,
                         seed=seed)
     print(f"generating {preset} (30 vehicles x 4 tracks, seed {seed}) into {path}")
@@ -58,8 +58,6 @@ def surface_floor(track, n: int, seed: int) -> tuple[float, str]:
     source = str(track.meta.get("source", ""))
     resample = None
     if source.startswith("procedural:"):
-        from seqshape.vehicles import procedural_vehicle, sample_outer_surface
-
         _, kind, vseed = source.split(":")
         mesh = procedural_vehicle(kind, int(vseed)).mesh
         resample = lambda k, s: sample_outer_surface(mesh, k, seed=s)  # noqa: E731

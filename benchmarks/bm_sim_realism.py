@@ -43,7 +43,7 @@ from _bench import print_table
 
 from seqshape.data.dataset import TrackDataset
 from seqshape.geometry import sensor_to_canonical
-from seqshape.sim.trajectories import view_angle
+from seqshape.sim.trajectories import PLACEMENTS, sample_trajectory, view_angle
 
 Z_BANDS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.2)
 R_BANDS = (-1.3, -0.75, -0.25, 0.25, 0.75, 1.3)
@@ -117,8 +117,6 @@ def layout(folders: list[Path], min_points: int, max_points: int, max_tracks: in
 
 def placement_views(n: int, max_range: float) -> list[list]:
     """Rows ``[placement, frames, % per VIEW_BINS bin]`` of ``n`` sampled tracks each."""
-    from seqshape.sim.trajectories import PLACEMENTS, sample_trajectory
-
     rows = []
     for placement in PLACEMENTS:
         rng = np.random.default_rng(0)

@@ -38,8 +38,9 @@ from _bench import bench_parser, print_table, time_it
 from seqshape.data.crop import CropConfig, crop_vehicle, local_ground
 from seqshape.data.extract import extract_tracks
 from seqshape.data.ground import ground_plane
+from seqshape.data.reference import accumulated_reference
 from seqshape.data.sequence import VEHICLE_CLASSES, log_names, open_log
-from seqshape.scripts.tracks import TracksConfig, extract_dataset
+from seqshape.data.tracks_export import TracksConfig, extract_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -142,8 +143,6 @@ def _per_box(logs, repeats):
 
 
 def bench_dataset(label, dataset, root, names, repeats, workers, min_points):
-    from seqshape.data.reference import accumulated_reference
-
     logs = _logs(dataset, root, names)
     n_frames = sum(len(log.frames) for log in logs)
     box_frames = [(log, f) for log in logs for f in log.frames if log.vehicle_boxes(f)]

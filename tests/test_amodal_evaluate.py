@@ -1,5 +1,7 @@
 """Mask evaluation against hand-computed IoUs and misses."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -8,8 +10,14 @@ from seqshape.amodal.evaluate import (
     evaluate_image,
     mask_iou_matrix,
     match_masks,
+    resolve_pairs,
     summarise,
+    within_distance,
+    write_mask_report,
 )
+from seqshape.cli import main
+from seqshape.data.kins import image_entry, kins_annotation, write_kins
+from seqshape.errors import ConfigError
 
 
 def box(y0, x0, h, w, size=(100, 100)):
@@ -70,8 +78,6 @@ def test_empty_image_and_no_predictions():
 
 
 def test_within_distance_keeps_near_instances_only():
-    from seqshape.amodal.evaluate import within_distance
-
     g = [np.zeros((4, 4), bool) for _ in range(3)]
     for k, m in enumerate(g):
         m[k, :] = True
@@ -79,3 +85,87 @@ def test_within_distance_keeps_near_instances_only():
     near = within_distance(res, 80.0)
     assert [r.gt_index for r in near] == [0]
     assert summarise(near)["miss_pct"] == 0.0 and summarise(res)["misses"] == 2
+
+
+def _kins_file(path, masks, visible, categories, distances=None):
+    """A one-image KINS file of the boxes ``masks`` (amodal) and ``visible``."""
+    anns = []
+    for k, (a, v, c) in enumerate(zip(masks, visible, categories, strict=True)):
+        ann = kins_annotation(k + 1, 0, c, a, v, 0, 0, track_id=k)
+        if distances is not None:
+            ann["distance"] = distances[k]
+        anns.append(ann)
+    write_kins(path, [image_entry(0, "0000", 0, 100, 100)], anns)
+    return path
+
+
+@pytest.fixture
+def label_pair(tmp_path):
+    g0, g1 = box(0, 0, 10, 10), box(50, 50, 10, 10)
+    gt = _kins_file(tmp_path / "gt.json", [g0, g1], [box(0, 0, 10, 5), g1], [4, 7],
+                    distances=[10.0, 40.0])
+    # p0: IoU 80/120 with g0 (a match); p1: IoU 40/100 with g1 (a miss, and unmatched)
+    pred = _kins_file(tmp_path / "pred.json", [box(0, 2, 10, 10), box(50, 50, 10, 4)],
+                      [box(0, 2, 10, 10), box(50, 50, 10, 4)], [4, 7])
+    return pred, gt
+
+
+def test_write_mask_report_hand_computed(label_pair, tmp_path):
+    out = tmp_path / "report"
+    table = write_mask_report([label_pair], out, name="run", max_distance=20.0)
+    m = json.loads((out / "metrics.json").read_text())
+    assert (m["n"], m["misses"], m["unmatched_predictions"]) == (2, 1, 1)
+    assert m["miss_pct"] == pytest.approx(50.0)
+    assert m["miou"] == pytest.approx(2 / 3) and m["miou_with_misses"] == pytest.approx(1 / 3)
+    near = m["within_max_distance"]  # g0 only (10 m; g1 is 40 m away)
+    assert (near["n"], near["misses"], near["max_distance_m"]) == (1, 0, 20.0)
+    assert m["breakdown"]["occlusion"]["largely (30-70%)"]["n"] == 1  # g0: half visible
+    assert m["breakdown"]["distance"]["30-50 m"]["misses"] == 1
+    assert m["iou_threshold"] == 0.5
+    assert m["pairs"] == [[str(label_pair[0]), str(label_pair[1])]]
+    records = json.loads((out / "instances.json").read_text())
+    assert [r["missed"] for r in records] == [False, True]
+    assert [r["iou"] for r in records] == pytest.approx([80 / 120, 0.4])
+    assert (out / "metrics.md").read_text() == table
+    assert "| run | 2 | 50.00 | 0.667 | 0.333 | 1 |" in table
+    assert "| run (<= 20 m) | 1 | 0.00 | 0.667 | 0.667 | 0 |" in table
+
+
+def test_write_mask_report_categories_and_bad_distance(label_pair, tmp_path):
+    write_mask_report([label_pair], tmp_path / "cars", categories=[4])
+    m = json.loads((tmp_path / "cars" / "metrics.json").read_text())
+    assert (m["n"], m["misses"], m["unmatched_predictions"]) == (1, 0, 0)
+    assert "within_max_distance" not in m
+    with pytest.raises(ConfigError, match="max-distance must be > 0"):
+        write_mask_report([label_pair], tmp_path / "bad", max_distance=0.0)
+    assert not (tmp_path / "bad").exists()
+
+
+def test_resolve_pairs_files_and_directories(label_pair, tmp_path):
+    pred, gt = label_pair
+    assert resolve_pairs([pred], [gt]) == [(pred, gt)]
+    pdir, gdir = tmp_path / "p", tmp_path / "g"
+    pdir.mkdir()
+    gdir.mkdir()
+    for name in ("0001.json", "0000.json"):
+        (pdir / name).write_bytes(pred.read_bytes())
+        (gdir / name).write_bytes(gt.read_bytes())
+    assert resolve_pairs([pdir], [gdir]) == [(pdir / "0000.json", gdir / "0000.json"),
+                                             (pdir / "0001.json", gdir / "0001.json")]
+    with pytest.raises(ConfigError, match="1 --pred but 2 --gt"):
+        resolve_pairs([pred], [gt, gt])
+    with pytest.raises(ConfigError, match="pair a file with a file"):
+        resolve_pairs([pdir], [gt])
+    with pytest.raises(ConfigError, match="no such file"):
+        resolve_pairs([tmp_path / "none.json"], [gt])
+    (pdir / "0001.json").unlink()
+    with pytest.raises(ConfigError, match="missing prediction"):
+        resolve_pairs([pdir], [gdir])
+
+
+def test_evaluate_masks_command_prints_the_report(label_pair, tmp_path, capsys):
+    out = tmp_path / "cli"
+    assert main(["evaluate-masks", "--pred", str(label_pair[0]), "--gt", str(label_pair[1]),
+                 "--out", str(out), "--name", "run"]) == 0
+    text = capsys.readouterr().out
+    assert text == (out / "metrics.md").read_text() + f"\nwrote {out / 'metrics.json'}\n"

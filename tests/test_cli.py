@@ -11,9 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from seqshape.camera import kitti_default_calib, write_calib
 from seqshape.cli import COMMANDS, HelpFormatter, main
 from seqshape.data import TrackDataset
+from seqshape.data.kitti import KittiLabel, pose_to_label_fields, write_velodyne
+from seqshape.data.kitti import write_labels as write_kitti
 from seqshape.geometry import canonical_to_sensor
+from seqshape.scripts.scenes import degrade_config
+from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 from seqshape.testing import box_shell
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
@@ -77,6 +82,38 @@ def test_options_and_defaults_as_released(case):
     assert {k: str(v) if isinstance(v, Path) else v for k, v in parsed.items()} == expected
 
 
+# seqshape scenes: the DegradeConfig of argv as the release before the --degrade-* options came
+# from DegradeConfig's fields (33229e9: flag by flag, by hand)
+RELEASED_DEGRADE = {
+    (): DegradeConfig(),
+    ("--no-degrade",): NO_DEGRADE,
+    ("--no-degrade", "--degrade-dilate", "3"): NO_DEGRADE,
+    ("--degrade-jitter", "0.5", "2", "--degrade-dilate", "-2"):
+        DegradeConfig(jitter_px=(0.5, 2.0), dilate_px=-2),
+    ("--degrade-miss-small", "0.2", "--degrade-miss", "0.1", "--degrade-false", "0.5"):
+        DegradeConfig(miss_rate_small=0.2, miss_rate=0.1, false_rate=0.5),
+}
+
+
+@pytest.mark.parametrize("argv", sorted(RELEASED_DEGRADE))
+def test_scenes_degrade_options_as_released(argv):
+    args = _command_parser("scenes").parse_args(["--out", "o", *argv])
+    got = degrade_config(args)
+    assert got == RELEASED_DEGRADE[argv]
+    assert type(got.jitter_px) is tuple and type(got.dilate_px) is int
+    assert all(type(getattr(got, f)) is float
+               for f in ("miss_rate_small", "miss_rate", "false_rate"))
+
+
+def test_scenes_degrade_help_comes_from_the_config():
+    text = _command_parser("scenes").format_help()
+    for flag in ("--degrade-jitter MIN MAX", "--degrade-dilate DEGRADE_DILATE",
+                 "--degrade-miss-small DEGRADE_MISS_SMALL", "--degrade-miss DEGRADE_MISS",
+                 "--degrade-false DEGRADE_FALSE", "--no-degrade"):
+        assert flag in text
+    assert "false instances per true instance (Poisson mean)" in " ".join(text.split())
+
+
 @pytest.mark.parametrize("name", sorted(COMMANDS))
 def test_every_option_has_help_that_shows_its_default(name):
     parser = _command_parser(name)
@@ -99,10 +136,6 @@ def test_top_level_help_lists_every_command(capsys):
 
 def _tiny_kitti(root: Path, frames: int = 4) -> Path:
     """A hand-built KITTI tracking sequence 0000: two box cars seen from the sensor side."""
-    from seqshape.camera import kitti_default_calib, write_calib
-    from seqshape.data.kitti import KittiLabel, pose_to_label_fields, write_velodyne
-    from seqshape.data.kitti import write_labels as write_kitti
-
     size = (4.0, 1.8, 1.5)
     calib = kitti_default_calib()
     write_calib(root / "calib" / "0000.txt", calib)

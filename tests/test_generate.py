@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -17,13 +18,19 @@ from seqshape.cli import main
 from seqshape.data import TrackDataset
 from seqshape.errors import ConfigError, DataError
 from seqshape.geometry import sensor_to_canonical
+from seqshape.scripts.stats import collect, format_table
 from seqshape.sim.generate import (
     PRESETS,
     GenerateConfig,
     generate_dataset,
     preset_config,
+    scaled_preset_config,
+    scaled_val_vehicles,
+    track_lengths,
 )
 from seqshape.sim.sensors import get_sensor
+from seqshape.sim.trajectories import sample_track_length, track_length_location
+from seqshape.vehicles import vehicle_library
 
 SMALL = GenerateConfig("small", n_vehicles=3, n_val_vehicles=1, tracks_per_vehicle=2,
                        min_frames=6, max_frames=14, mean_frames=9.0, max_distance=30.0,
@@ -79,8 +86,6 @@ def test_dataset_content_and_splits(small):
 
 
 def test_points_lie_on_the_vehicle_surface(small):
-    from seqshape.vehicles import vehicle_library
-
     lib = {v.vehicle_id: v.mesh for v in vehicle_library(SMALL.n_vehicles, SMALL.seed)}
     elev = np.array(get_sensor("vlp16").elevations_deg)
     n_points = 0
@@ -242,8 +247,6 @@ def test_cli_tiny_runs_and_resumes(tmp_path, capsys):
 
 
 def test_stats_table_matches_hand_count(small, capsys):
-    from seqshape.scripts.stats import collect, format_table
-
     ds = TrackDataset(small)
     stats = collect(ds)
     frames = sum(len(t) for t in ds)
@@ -271,11 +274,42 @@ def test_show_writes_png_and_offline_html(small, tmp_path, capsys):
     assert "no track 'nope'" in capsys.readouterr().err
 
 
+def test_scaled_val_vehicles_hand_computed():
+    paper, tiny = PRESETS["paper"], PRESETS["tiny"]  # 15 of 183; 2 of 6
+    assert scaled_val_vehicles(paper, 50) == 4      # 50 * 15 / 183 = 4.10
+    assert scaled_val_vehicles(paper, 100) == 8     # 8.20
+    assert scaled_val_vehicles(paper, 10) == 1      # 0.82 -> at least 1
+    assert scaled_val_vehicles(tiny, 9) == 3        # 9 * 2 / 6
+    assert scaled_val_vehicles(tiny, 2) == 1        # at most n - 1
+    assert scaled_val_vehicles(tiny, 1) == 0        # a single vehicle trains
+    assert scaled_val_vehicles(paper, 183) == 15
+
+
+def test_track_lengths_hand_computed():
+    paper, tiny = PRESETS["paper"], PRESETS["tiny"]  # frames 10-200; 10-30
+    assert track_lengths(paper, 50) == {"mean_frames": 50.0, "min_frames": 10, "max_frames": 150}
+    assert track_lengths(paper, 100) == {"mean_frames": 100.0, "min_frames": 10,
+                                         "max_frames": 200}  # the preset's cap
+    assert track_lengths(tiny, 12.5) == {"mean_frames": 12.5, "min_frames": 10,
+                                         "max_frames": 30}
+    assert track_lengths(tiny, 40) == {"mean_frames": 40.0, "min_frames": 10,
+                                       "max_frames": 40}  # never below the mean
+    assert track_lengths(tiny, 4) == {"mean_frames": 4.0, "min_frames": 4, "max_frames": 12}
+
+
+def test_scaled_preset_config_as_the_command_sets_it():
+    assert scaled_preset_config("paper") == PRESETS["paper"]
+    cfg = scaled_preset_config("paper", n_vehicles=50, mean_frames=20, seed=3, sensor=None)
+    assert (cfg.n_vehicles, cfg.n_val_vehicles, cfg.seed, cfg.sensor) == (50, 4, 3, "vlp16")
+    assert (cfg.min_frames, cfg.mean_frames, cfg.max_frames) == (10, 20.0, 60)
+    # an explicit value wins over the derived one
+    assert scaled_preset_config("paper", n_vehicles=50, n_val_vehicles=7).n_val_vehicles == 7
+    assert preset_config("paper", n_vehicles=50).n_val_vehicles == 15  # preset_config: as given
+    with pytest.raises(ConfigError, match="unknown preset"):
+        scaled_preset_config("huge", n_vehicles=3)
+
+
 def test_cli_tracks_per_vehicle_and_mean_frames(tmp_path):
-    import json
-
-    from seqshape.cli import main
-
     out = tmp_path / "g"
     assert main(["generate", "--preset", "tiny", "--out", str(out), "--tracks-per-vehicle", "1",
                  "--mean-frames", "12"]) == 0
@@ -283,3 +317,18 @@ def test_cli_tracks_per_vehicle_and_mean_frames(tmp_path):
     assert len(m["tracks"]) == 6  # 6 vehicles x 1 track
     assert (m["config"]["mean_frames"], m["config"]["max_frames"]) == (12.0, 30)
     assert all(10 <= e["n_frames"] <= 30 for e in m["tracks"])
+
+
+def test_unreachable_mean_length_is_refused_before_writing(tmp_path, capsys):
+    # the truncated log-normal over [6, 18] frames cannot have a mean of exactly 6: its lowest
+    # reachable mean is above the lower bound (a clear error, not scipy's root-finder message)
+    out = tmp_path / "never"
+    assert main(["generate", "--preset", "tiny", "--mean-frames", "6", "--out", str(out)]) != 0
+    err = capsys.readouterr().err
+    assert "mean track length of 6.0 frames" in err and "choose a mean in [" in err
+    assert not out.exists()
+    with pytest.raises(ConfigError, match="cannot be drawn"):
+        track_length_location(6, 18, 6.0)
+    rng = np.random.default_rng(0)
+    lengths = [sample_track_length(rng, 6, 18, 7.0) for _ in range(4000)]
+    assert min(lengths) >= 6 and max(lengths) <= 18 and abs(np.mean(lengths) - 7.0) < 0.1

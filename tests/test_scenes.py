@@ -7,6 +7,9 @@ import numpy as np
 import pytest
 import trimesh
 
+import seqshape.sim.generate as gen
+import seqshape.sim.render as render
+from seqshape._runner import parse_shard
 from seqshape.camera import kitti_default_calib, project_points
 from seqshape.data.kins import annotations_by_image, occlusion_order, read_kins, rle_to_mask
 from seqshape.data.kitti import KittiTrackingSequence, extract_tracks, read_velodyne
@@ -32,6 +35,7 @@ from seqshape.sim.scene_writer import (
 )
 from seqshape.sim.scenes import LayoutConfig, Road, build_scene, check_no_overlap
 from seqshape.sim.sensors import get_sensor
+from seqshape.vehicles import vehicle_library
 
 SMALL = SceneConfig("kitti-tiny", 1, (6, 6), (5, 6))
 SEED = 0
@@ -164,8 +168,6 @@ def test_pixel_rays_project_to_their_pixels():
 
 
 def test_scene_layout_has_no_overlap_and_road_round_trip():
-    from seqshape.vehicles import vehicle_library
-
     vehicles = vehicle_library(20, seed=1)
     for seed in range(5):
         scene = build_scene(LayoutConfig(n_frames=60, n_vehicles=(10, 20)), vehicles,
@@ -211,14 +213,10 @@ def test_shards_and_workers_give_the_files_of_one_run(tmp_path):
 
 
 def test_old_import_paths_warn():
-    import seqshape.amodal.degrade as old_degrade
-    import seqshape.sim.generate as gen
-    import seqshape.sim.render as render
-    from seqshape._runner import parse_shard
-    from seqshape.sim import degrade
+    import seqshape.amodal.degrade as old_degrade  # the old paths under test
 
     with pytest.warns(DeprecationWarning, match="seqshape.sim.degrade"):
-        assert old_degrade.DegradeConfig is degrade.DegradeConfig
+        assert old_degrade.DegradeConfig is DegradeConfig
     with pytest.warns(DeprecationWarning, match="cast_posed"):
         assert render.cast_vehicle is cast_posed
     with pytest.warns(DeprecationWarning, match="seqshape._runner"):

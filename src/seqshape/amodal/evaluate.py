@@ -14,6 +14,9 @@ instances of all images:
 Each reference instance also carries its occlusion fraction ``1 - i_area / a_area`` and, when
 known, its distance (m); the metrics are broken down by :data:`OCCLUSION_BINS` and
 :data:`DISTANCE_BINS`.
+
+:func:`write_mask_report` is ``seqshape evaluate-masks``: it scores label files paired by
+:func:`resolve_pairs` and writes ``metrics.json``, ``instances.json`` and ``metrics.md``.
 """
 
 from __future__ import annotations
@@ -25,8 +28,10 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from seqshape._io import atomic_write_json, atomic_write_text
 from seqshape.data.kins import annotation_mask, read_kins
 from seqshape.data.kitti import read_labels
+from seqshape.errors import ConfigError
 
 IOU_THRESHOLD = 0.5
 #: occlusion fraction bins (label, low, high): low <= occ < high
@@ -254,3 +259,73 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
             results.extend(res)
             unmatched += un
     return results, unmatched
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def resolve_pairs(preds: Sequence[Path], gts: Sequence[Path]) -> list[tuple[Path, Path]]:
+    """Pair prediction and reference files; directories pair their ``*.json`` by file name.
+
+    ``preds[i]`` goes with ``gts[i]``: two files, or two directories (every reference
+    ``*.json`` needs a prediction of the same name). :class:`ConfigError` (naming the
+    ``--pred``/``--gt`` options of ``seqshape evaluate-masks``) on a count mismatch, a file
+    paired with a directory, or a missing file.
+    """
+    if len(preds) != len(gts):
+        raise ConfigError(f"{len(preds)} --pred but {len(gts)} --gt: give them in pairs")
+    pairs = []
+    for p, g in zip(preds, gts, strict=True):
+        if p.is_dir() != g.is_dir():
+            raise ConfigError(f"--pred {p} and --gt {g}: pair a file with a file, or a "
+                              "directory with a directory")
+        if not p.is_dir():
+            for f in (p, g):
+                if not f.is_file():
+                    raise ConfigError(f"{f}: no such file")
+            pairs.append((p, g))
+            continue
+        gt_files = sorted(g.glob("*.json"))
+        if not gt_files:
+            raise ConfigError(f"{g}: no *.json reference files")
+        for gf in gt_files:
+            pf = p / gf.name
+            if not pf.is_file():
+                raise ConfigError(f"{pf}: missing prediction for reference {gf}")
+            pairs.append((pf, gf))
+    return pairs
+
+
+def write_mask_report(pairs: Sequence[tuple[Path, Path]], out: str | Path, name: str = "labels",
+                      categories: Sequence[int] | None = None,
+                      max_distance: float | None = None) -> str:
+    """Score ``pairs`` (:func:`evaluate_files`) and write the report under ``out``.
+
+    ``out/metrics.json``: :func:`summarise` of every reference instance, ``breakdown``
+    (:func:`breakdown`), ``iou_threshold`` and ``pairs``; with ``max_distance`` (m, > 0) also
+    ``within_max_distance``, the metrics over the reference instances at most that far
+    (:func:`within_distance`; the matching still uses every instance).
+    ``out/instances.json``: :func:`results_to_records`. ``out/metrics.md``: the markdown
+    tables (a row ``name``, and ``name (<= M m)`` with ``max_distance``), also returned.
+    ``categories`` restricts the scoring to those category ids (default: all).
+    """
+    if max_distance is not None and not max_distance > 0:
+        raise ConfigError(f"--max-distance must be > 0, got {max_distance}")
+    out = Path(out)
+    results, unmatched = evaluate_files(pairs, categories)
+    metrics = summarise(results, unmatched)
+    bd = breakdown(results)
+    rows = {name: metrics}
+    extra = {}
+    if max_distance is not None:
+        near = within_distance(results, max_distance)
+        extra["within_max_distance"] = {**summarise(near), "max_distance_m": max_distance}
+        rows[f"{name} (<= {max_distance:g} m)"] = extra["within_max_distance"]
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / "metrics.json",
+                      {**metrics, **extra, "breakdown": bd, "iou_threshold": IOU_THRESHOLD,
+                       "pairs": [[str(p), str(g)] for p, g in pairs]})
+    atomic_write_json(out / "instances.json", results_to_records(results), indent=None)
+    table = markdown_table(rows) + "\n" + breakdown_table(bd)
+    atomic_write_text(out / "metrics.md", table)
+    return table

@@ -1,4 +1,9 @@
-"""``seqshape generate``: write a synthetic LiDAR track dataset (see docs/generation.md)."""
+"""``seqshape generate``: write a synthetic LiDAR track dataset (see docs/generation.md).
+
+The config is :func:`seqshape.sim.generate.scaled_preset_config` (``--vehicles`` scales the
+val share, ``--mean-frames`` the length range); the work is
+:func:`~seqshape.sim.generate.generate_dataset`.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from seqshape._runner import parse_shard
-from seqshape.sim.generate import PRESETS, generate_dataset, preset_config
+from seqshape.sim.generate import PRESETS, generate_dataset, scaled_preset_config
 from seqshape.sim.sensors import SENSORS
 
 HELP = "generate a synthetic LiDAR track dataset"
@@ -55,32 +60,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "--shard (or any shard) once all parts exist to write the manifest")
 
 
-def _lengths(args: argparse.Namespace) -> dict:
-    """``mean_frames`` / ``max_frames`` / ``min_frames`` overrides from ``--mean-frames``."""
-    if args.mean_frames is None:
-        return {}
-    base = PRESETS[args.preset]
-    mean = float(args.mean_frames)
-    return {"mean_frames": mean, "min_frames": min(base.min_frames, int(mean)),
-            "max_frames": max(int(mean), min(base.max_frames, int(3 * mean)))}
-
-
 def run(args: argparse.Namespace) -> int:
     shard = parse_shard(args.shard)
     meshes = str(Path(args.meshes).resolve()) if args.meshes else None
     trajs = str(Path(args.trajectories).resolve()) if args.trajectories else None
-    n_val = None
-    if args.n_vehicles is not None:
-        base = PRESETS[args.preset]
-        n_val = min(max(round(args.n_vehicles * base.n_val_vehicles / base.n_vehicles), 1),
-                    max(args.n_vehicles - 1, 0))
-    config = preset_config(args.preset, n_val_vehicles=n_val, sensor=args.sensor, seed=args.seed,
-                           num_points=args.num_points, meshes=meshes, trajectories=trajs,
-                           mesh_up=args.mesh_up, mesh_forward=args.mesh_forward,
-                           mesh_scale=args.mesh_scale, library=args.library,
-                           placement=args.placement,
-                           n_vehicles=args.n_vehicles,
-                           tracks_per_vehicle=args.tracks_per_vehicle, **_lengths(args))
+    config = scaled_preset_config(args.preset, n_vehicles=args.n_vehicles,
+                                  mean_frames=args.mean_frames, sensor=args.sensor,
+                                  seed=args.seed, num_points=args.num_points, meshes=meshes,
+                                  trajectories=trajs, mesh_up=args.mesh_up,
+                                  mesh_forward=args.mesh_forward, mesh_scale=args.mesh_scale,
+                                  library=args.library, placement=args.placement,
+                                  tracks_per_vehicle=args.tracks_per_vehicle)
     s = generate_dataset(config, args.out, workers=args.workers, shard=shard)
     print(f"{args.out}: {s.n_generated} tracks generated, {s.n_skipped} already there, "
           f"{s.n_tracks} in the preset ({s.seconds:.1f} s)")

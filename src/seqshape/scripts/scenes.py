@@ -1,4 +1,8 @@
-"""``seqshape scenes``: camera + LiDAR scenes in the KITTI tracking layout with exact amodal GT."""
+"""``seqshape scenes``: camera + LiDAR scenes in the KITTI tracking layout with exact amodal GT.
+
+The work is :func:`seqshape.sim.scene_writer.generate_scenes`; the ``--degrade-*`` options are
+the fields of :class:`seqshape.sim.degrade.DegradeConfig` (help and defaults from the class).
+"""
 
 from __future__ import annotations
 
@@ -6,10 +10,33 @@ import time
 
 from seqshape._runner import parse_shard
 from seqshape.errors import ConfigError
+from seqshape.scripts._config_args import add_config_arguments, config_kwargs, field_help
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 from seqshape.sim.scene_writer import generate_scenes, scene_config
 
 HELP = "generate camera+LiDAR scenes in the KITTI tracking layout"
+#: DegradeConfig fields and their option names (``--degrade-*``, as released)
+DEGRADE_FLAGS = {"dilate_px": "--degrade-dilate", "miss_rate_small": "--degrade-miss-small",
+                 "miss_rate": "--degrade-miss", "false_rate": "--degrade-false"}
+
+
+def _add_degrade_arguments(group) -> None:
+    """``--degrade-jitter MIN MAX`` and the :data:`DEGRADE_FLAGS` from ``DegradeConfig``."""
+    # a (min, max) pair: by hand, as the config options take one value each
+    group.add_argument("--degrade-jitter", dest="jitter_px", type=float, nargs=2,
+                       metavar=("MIN", "MAX"), default=DegradeConfig().jitter_px,
+                       help=field_help(DegradeConfig)["jitter_px"].removesuffix("."))
+    add_config_arguments(group, DegradeConfig, list(DEGRADE_FLAGS), **{
+        name: {"flag": flag, "metavar": flag[2:].upper().replace("-", "_")}
+        for name, flag in DEGRADE_FLAGS.items()})
+
+
+def degrade_config(args) -> DegradeConfig:
+    """The :class:`DegradeConfig` of the parsed ``--no-degrade`` / ``--degrade-*`` options."""
+    if args.no_degrade:
+        return NO_DEGRADE
+    return DegradeConfig(**config_kwargs(args, list(DEGRADE_FLAGS)),
+                         jitter_px=tuple(args.jitter_px))
 
 
 def add_arguments(p) -> None:
@@ -33,16 +60,7 @@ def add_arguments(p) -> None:
                         "e.g. on N machines sharing OUT; the files do not depend on the shard")
     g = p.add_argument_group("2D instance degradations (instances_2d/)")
     g.add_argument("--no-degrade", action="store_true", help="write the exact visible masks")
-    g.add_argument("--degrade-jitter", type=float, nargs=2, metavar=("MIN", "MAX"),
-                   default=(1.0, 3.0), help="boundary noise amplitude range, px")
-    g.add_argument("--degrade-dilate", type=int, default=0,
-                   help="dilate (>0) or erode (<0) every mask by this many px")
-    g.add_argument("--degrade-miss-small", type=float, default=0.05,
-                   help="probability of missing an instance smaller than 32x32 px")
-    g.add_argument("--degrade-miss", type=float, default=0.0,
-                   help="probability of missing a larger instance")
-    g.add_argument("--degrade-false", type=float, default=0.02,
-                   help="false instances per true instance (Poisson mean)")
+    _add_degrade_arguments(g)
 
 
 def run(args) -> int:
@@ -52,10 +70,7 @@ def run(args) -> int:
     frames = None if args.frames is None else (args.frames, args.frames)
     cfg = scene_config(args.preset, n_sequences=args.sequences, frames=frames,
                        sensor=args.sensor, min_visible_area=args.min_visible_area)
-    degrade = NO_DEGRADE if args.no_degrade else DegradeConfig(
-        miss_rate_small=args.degrade_miss_small, miss_rate=args.degrade_miss,
-        dilate_px=args.degrade_dilate, jitter_px=tuple(args.degrade_jitter),
-        false_rate=args.degrade_false)
+    degrade = degrade_config(args)
     start = time.perf_counter()
     results = generate_scenes(args.out, cfg, seed=args.seed, workers=args.workers,
                               degrade=degrade, shard=shard)

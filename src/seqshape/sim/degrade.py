@@ -29,7 +29,15 @@ from seqshape.errors import ConfigError
 
 @dataclass(frozen=True)
 class DegradeConfig:
-    """Rates and magnitudes of the degradations (see the module docstring)."""
+    """Rates and magnitudes of the degradations (see the module docstring).
+
+    miss_rate_small: probability of missing a small instance (area below ``small_area`` px).
+    miss_rate: probability of missing a larger instance.
+    small_area: area (px) below which an instance is small (32 x 32, COCO's small).
+    dilate_px: dilate (>0) or erode (<0) every mask by this many px.
+    jitter_px: boundary noise amplitude range, px (per instance, uniform in [min, max]).
+    false_rate: false instances per true instance (Poisson mean).
+    """
 
     miss_rate_small: float = 0.05
     miss_rate: float = 0.0

@@ -33,7 +33,7 @@ from seqshape.errors import ConfigError, DataError
 from seqshape.sim._worker import GENERATOR_VERSION
 from seqshape.sim.real import RealConfig
 from seqshape.sim.sensors import get_sensor
-from seqshape.sim.trajectories import PLACEMENTS, read_trajectory_csv
+from seqshape.sim.trajectories import PLACEMENTS, read_trajectory_csv, track_length_location
 from seqshape.vehicles import fleet_library, load_vehicle_folder, vehicle_library
 
 log = logging.getLogger(__name__)
@@ -113,7 +113,9 @@ class GenerateConfig:
         if self.tracks_per_vehicle < 1 or self.num_points < 1 or self.max_occluders < 0:
             raise ConfigError("tracks_per_vehicle and num_points must be >= 1, "
                               "max_occluders >= 0")
-        if not 1 <= self.min_frames <= self.mean_frames <= self.max_frames:
+        if self.min_frames != self.max_frames:
+            track_length_location(self.min_frames, self.max_frames, self.mean_frames)
+        elif not 1 <= self.min_frames == self.mean_frames:
             raise ConfigError("need 1 <= min_frames <= mean_frames <= max_frames")
         if not 0 < self.min_distance < self.max_distance:
             raise ConfigError("need 0 < min_distance < max_distance")
@@ -328,12 +330,16 @@ def _maybe_write_manifest(out: Path, plan, cfg: dict, entries: dict[str, dict]):
     return True, []
 
 
-def preset_config(name: str, **overrides) -> GenerateConfig:
-    """The preset ``name`` with fields replaced by the non-None ``overrides``."""
+def _preset(name: str) -> GenerateConfig:
     try:
-        base = PRESETS[name]
+        return PRESETS[name]
     except KeyError:
         raise ConfigError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None
+
+
+def preset_config(name: str, **overrides) -> GenerateConfig:
+    """The preset ``name`` with fields replaced by the non-None ``overrides``."""
+    base = _preset(name)
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if base.real is not None and "sensor" in overrides and "real" not in overrides:
         # one sensor model for the whole dataset instead of the preset's mix
@@ -342,6 +348,46 @@ def preset_config(name: str, **overrides) -> GenerateConfig:
     cfg = replace(base, **overrides)
     cfg.validate()
     return cfg
+
+
+def scaled_val_vehicles(base: GenerateConfig, n_vehicles: int) -> int:
+    """Val vehicles for ``n_vehicles``: the preset's val share, at least 1 and at most
+    ``n_vehicles - 1`` (0 for a single vehicle).
+
+    >>> scaled_val_vehicles(PRESETS["paper"], 50)  # 15 of 183
+    4
+    """
+    share = round(n_vehicles * base.n_val_vehicles / base.n_vehicles)
+    return min(max(share, 1), max(n_vehicles - 1, 0))
+
+
+def track_lengths(base: GenerateConfig, mean_frames: float) -> dict:
+    """``mean_frames``, ``min_frames`` and ``max_frames`` for a mean track length: the
+    preset's shortest (or the mean if shorter) and the longest capped at 3x the mean (or the
+    preset's cap if smaller, but never below the mean).
+
+    >>> track_lengths(PRESETS["paper"], 6)
+    {'mean_frames': 6.0, 'min_frames': 6, 'max_frames': 18}
+    """
+    mean = float(mean_frames)
+    return {"mean_frames": mean, "min_frames": min(base.min_frames, int(mean)),
+            "max_frames": max(int(mean), min(base.max_frames, int(3 * mean)))}
+
+
+def scaled_preset_config(name: str, n_vehicles: int | None = None,
+                         mean_frames: float | None = None, **overrides) -> GenerateConfig:
+    """:func:`preset_config` as ``seqshape generate`` sets it: a vehicle count scales the val
+    vehicles with it (:func:`scaled_val_vehicles`), a mean track length sets the length range
+    (:func:`track_lengths`); explicit non-None ``overrides`` win over both.
+    """
+    base = _preset(name)
+    derived: dict = {"n_vehicles": n_vehicles}
+    if n_vehicles is not None:
+        derived["n_val_vehicles"] = scaled_val_vehicles(base, n_vehicles)
+    if mean_frames is not None:
+        derived.update(track_lengths(base, mean_frames))
+    return preset_config(name, **{**derived, **{k: v for k, v in overrides.items()
+                                                 if v is not None}})
 
 
 def make_track_in_process(config: GenerateConfig, vehicles, splits, index: int,

@@ -63,18 +63,31 @@ def _truncated_lognormal_mean(mu: float, sigma: float, lo: float, hi: float) -> 
     return math.exp(mu + sigma ** 2 / 2) * (ndtr(b - sigma) - ndtr(a - sigma)) / (ndtr(b) - ndtr(a))
 
 
+def track_length_location(min_frames: int, max_frames: int, mean_frames: float,
+                          sigma: float = 0.7) -> float:
+    """The log-normal location ``mu`` whose truncation to ``[min_frames, max_frames]`` has the
+    mean ``mean_frames`` (:class:`ConfigError` naming the reachable means when there is none)."""
+    if not 1 <= min_frames <= mean_frames <= max_frames:
+        raise ConfigError(f"need 1 <= min_frames ({min_frames}) <= mean_frames ({mean_frames}) "
+                          f"<= max_frames ({max_frames})")
+    lo, hi = min_frames - 0.5, max_frames + 0.5
+    bracket = (math.log(lo) - 5 * sigma, math.log(hi) + 5 * sigma)
+    reach = [_truncated_lognormal_mean(m, sigma, lo, hi) for m in bracket]
+    if not reach[0] <= mean_frames <= reach[1]:
+        raise ConfigError(f"a mean track length of {mean_frames} frames cannot be drawn between "
+                          f"{min_frames} and {max_frames} frames with sigma {sigma}: choose a "
+                          f"mean in [{math.ceil(reach[0] * 10) / 10}, "
+                          f"{math.floor(reach[1] * 10) / 10}]")
+    return brentq(lambda m: _truncated_lognormal_mean(m, sigma, lo, hi) - mean_frames, *bracket)
+
+
 def sample_track_length(rng: np.random.Generator, min_frames: int = 10, max_frames: int = 200,
                         mean_frames: float = 70.0, sigma: float = 0.7) -> int:
     """A track length in ``[min_frames, max_frames]``: log-normal truncated to that range, with
     its location chosen so that the truncated mean is ``mean_frames``."""
-    if not 1 <= min_frames <= mean_frames <= max_frames:
-        raise ConfigError(f"need 1 <= min_frames ({min_frames}) <= mean_frames ({mean_frames}) "
-                          f"<= max_frames ({max_frames})")
-    if min_frames == max_frames:
+    if min_frames == max_frames and 1 <= min_frames == mean_frames:
         return int(min_frames)
-    lo, hi = min_frames - 0.5, max_frames + 0.5
-    mu = brentq(lambda m: _truncated_lognormal_mean(m, sigma, lo, hi) - mean_frames,
-                math.log(lo) - 5 * sigma, math.log(hi) + 5 * sigma)
+    mu = track_length_location(min_frames, max_frames, mean_frames, sigma)
     while True:
         n = int(round(rng.lognormal(mu, sigma)))
         if min_frames <= n <= max_frames:
