@@ -24,6 +24,13 @@ matching always uses every instance. The per-distance breakdown goes into result
 
 The sc-* rows need estimator weights: ``--checkpoint PATH`` or ``pretrained`` (skipped with a
 note when they cannot be loaded).
+
+``--stages [--baseline-src OLD/src]``: speed only, per stage. Each of ``--modes`` (sc-gt and
+sc-seg by default) labels the sequences in a fresh process (``benchmarks/_label_stages.py``),
+once with cProfile for the seconds per stage and ``--repeats`` times without it for frames/s,
+with this package and, alternating with it in the same run, with the package at
+``--baseline-src`` (``PYTHONPATH``): a before/after table with ratios, whether the two label
+files are byte-identical, and each one's % miss / mIoU against the scenes' reference.
 """
 
 from __future__ import annotations
@@ -40,6 +47,8 @@ from _bench import bench_parser, print_table, time_it
 
 os.environ.setdefault("SEQSHAPE_PROGRESS", "0")
 
+from seqshape._io import atomic_write_text  # noqa: E402
+from seqshape.amodal.accumulate import place_in_frames  # noqa: E402
 from seqshape.amodal.align import AlignConfig  # noqa: E402
 from seqshape.amodal.evaluate import (  # noqa: E402
     breakdown,
@@ -48,26 +57,26 @@ from seqshape.amodal.evaluate import (  # noqa: E402
     summarise,
     within_distance,
 )
-from seqshape.amodal.kins import read_kins, write_kins  # noqa: E402
 from seqshape.amodal.labeler import (  # noqa: E402
     LabelConfig,
     clouds_by_frame,
     gt_track_inputs,
     label_sequence,
-    load_estimator,
     open_sequence,
     render_labels,
     write_labels,
 )
 from seqshape.amodal.refine import REFINE_MODES  # noqa: E402
-from seqshape.data.kitti import KittiTrackingSequence  # noqa: E402
+from seqshape.data.crop import crop_box  # noqa: E402
+from seqshape.data.kins import read_kins, write_kins  # noqa: E402
+from seqshape.data.kitti import KittiTrackingSequence, label_to_pose  # noqa: E402
+from seqshape.sim.degrade import DegradeConfig  # noqa: E402
+from seqshape.sim.scene_writer import generate_scenes, load_scene, scene_config  # noqa: E402
+from seqshape.vehicles.surface import sample_outer_surface  # noqa: E402
 
 
 def ensure_scenes(path: Path | None, sequences: int, frames: int, seed: int) -> Path:
     """The scene set folder, generated with ``seqshape scenes`` when absent."""
-    from seqshape.amodal.degrade import DegradeConfig
-    from seqshape.sim.scene_writer import generate_scenes, scene_config
-
     if path is None:
         path = Path(tempfile.gettempdir()) / f"seqshape_bm_labelling_{sequences}x{frames}_{seed}"
     if not (path / "scene.json").is_file() or not list((path / "amodal").glob("*.json")):
@@ -79,10 +88,6 @@ def ensure_scenes(path: Path | None, sequences: int, frames: int, seed: int) -> 
 
 def oracle_labels(root: Path, sequence: str, cfg: LabelConfig, max_frames: int | None = None):
     """Labels from the true meshes at the true poses (upper bound of the mask steps)."""
-    from seqshape.amodal.accumulate import place_in_frames
-    from seqshape.sim.scene_writer import load_scene
-    from seqshape.vehicles.surface import sample_outer_surface
-
     seq = open_sequence(root, sequence, max_frames)
     scene, _ = load_scene(root, sequence)
     by_tid = {a.track_id: k for k, a in enumerate(scene.agents)}
@@ -109,8 +114,6 @@ def reference_subset(root: Path, sequence: str, max_frames: int | None, out_dir:
     ``lidar_points``, the number of LiDAR returns inside its box: instances without any cannot
     be labelled from LiDAR at all, whatever the method.
     """
-    from seqshape.data.kitti import crop_box, label_to_pose
-
     full = root / "amodal" / f"{sequence}.json"
     seq = open_sequence(root, sequence, max_frames)
     frames = set(seq.frames)
@@ -174,11 +177,85 @@ def time_method(root, sequence, name, cfg, estimator, repeats, max_frames=None):
 
 def write_results(out_dir: Path, root: Path, note: str, args, rows: list[dict]) -> None:
     """``out_dir/results.json`` with the rows so far (rewritten after every method)."""
-    from seqshape._io import atomic_write_text
-
     atomic_write_text(out_dir / "results.json", json.dumps(
         {"scenes": str(root), "note": note, "order": args.order, "sequences": args.sequences,
          "frames": args.frames, "rows": rows}, indent=2))
+
+
+def _stage_run(src: Path | None, root: Path, sequences, frames, mode: str, checkpoint: str,
+               out: Path, profile: bool) -> dict:
+    """One labelling run of ``_label_stages.py`` in a fresh process, with the package at
+    ``src`` (None: this one); its JSON result."""
+    import subprocess
+
+    env = dict(os.environ)
+    if src is not None:
+        env["PYTHONPATH"] = str(src)
+    cmd = [sys.executable, str(Path(__file__).with_name("_label_stages.py")), "--scenes",
+           str(root), "--sequences", *sequences, "--frames", str(frames), "--mode", mode,
+           "--checkpoint", checkpoint, "--out", str(out)] + (["--profile"] if profile else [])
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    if done.returncode:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _scores(out: Path, root: Path, sequences, frames) -> tuple[float, float]:
+    """(% miss, mIoU) of the label files in ``out`` against the scenes' reference."""
+    pairs = [(out / f"{s}.json", reference_subset(root, s, frames, out)) for s in sequences]
+    amodal = summarise(*evaluate_files(pairs))
+    return amodal["miss_pct"], amodal["miou"]
+
+
+def run_stages(root: Path, sequences, args) -> None:
+    """The ``--stages`` table (module doc): per mode and stage, seconds per frame before
+    (``--baseline-src``) and after, side by side."""
+    out_dir = args.out or Path(tempfile.mkdtemp(prefix="bm_labelling_stages_"))
+    versions = {"new": None} if args.baseline_src is None else {"old": args.baseline_src,
+                                                                "new": None}
+    print(f"scenes: {root} ({', '.join(sequences)}, first {args.frames} frames); "
+          f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}", flush=True)
+    for mode in args.modes:
+        runs: dict[str, dict] = {v: {"rates": []} for v in versions}
+        for rep in range(max(args.repeats, 0) + 1):  # the first run is profiled
+            for v, src in versions.items():
+                folder = out_dir / mode / v
+                res = _stage_run(src, root, sequences, args.frames, mode, args.checkpoint,
+                                 folder, profile=rep == 0)
+                if rep == 0:
+                    runs[v].update(res)
+                else:
+                    runs[v]["rates"].append(res["frames"] / res["seconds"])
+        names = list(runs["new"]["stages"])
+        cols = list(versions)
+        rows = []
+        for name in names:
+            per = [runs[v]["stages"][name] / runs[v]["frames"] * 1e3 for v in cols]
+            rows.append((name, *(f"{x:.1f}" for x in per),
+                         *([f"{per[0] / per[1]:.2f}" if per[1] > 0 else "-"] if len(cols) > 1
+                           else [])))
+        tot = [runs[v]["seconds"] / runs[v]["frames"] * 1e3 for v in cols]
+        rows.append(("total (profiled)", *(f"{x:.1f}" for x in tot),
+                     *([f"{tot[0] / tot[1]:.2f}"] if len(cols) > 1 else [])))
+        fps = [statistics.median(runs[v]["rates"]) if runs[v]["rates"] else float("nan")
+               for v in cols]
+        rows.append(("frames/s (unprofiled, median)", *(f"{x:.2f}" for x in fps),
+                     *([f"{fps[1] / fps[0]:.2f}"] if len(cols) > 1 else [])))
+        rows.append(("estimator load (s, once)", *(f"{runs[v]['load']:.2f}" for v in cols),
+                     *(["-"] if len(cols) > 1 else [])))
+        print(f"\n{mode}: ms per frame ({runs['new']['frames']} frames; frames/s over "
+              f"{args.repeats} unprofiled runs)")
+        print_table(("stage", *(f"{v} (ms/frame)" for v in cols),
+                     *(["old / new"] if len(cols) > 1 else [])), rows)
+        for v in cols:
+            miss, miou = _scores(out_dir / mode / v, root, sequences, args.frames)
+            print(f"{v}: % miss {miss:.2f}, mIoU {miou:.4f} against the reference")
+        if len(cols) > 1:
+            same = all((out_dir / mode / "old" / f"{s}.json").read_bytes()
+                       == (out_dir / mode / "new" / f"{s}.json").read_bytes()
+                       for s in sequences)
+            print(f"label files old vs new: {'byte-identical' if same else 'DIFFERENT'}")
+    print(f"labels in {out_dir}")
 
 
 def main(argv=None) -> int:
@@ -216,18 +293,29 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads for the estimator (default 1, as `seqshape label`)")
     p.add_argument("--out", type=Path, default=None, help="labels + results.json here")
+    p.add_argument("--stages", action="store_true",
+                   help="speed per stage only (module doc); --modes default sc-gt sc-seg")
+    p.add_argument("--baseline-src", type=Path, default=None,
+                   help="--stages: also run the package at this src folder (before/after)")
     args = p.parse_args(argv)
 
     root = ensure_scenes(args.scenes, args.skip + args.sequences, args.frames, args.seed)
     sequences = KittiTrackingSequence.sequences(root)[args.skip:args.skip + args.sequences]
+    if args.stages:
+        if args.modes == p.get_default("modes"):
+            args.modes = ["sc-gt", "sc-seg"]
+        run_stages(root, sequences, args)
+        return 0
     out_dir = args.out or Path(tempfile.mkdtemp(prefix="bm_labelling_"))
     estimator, note = None, ""
     if any(m.startswith("sc-") for m in args.modes):
-        import torch
+        import torch  # lazy: torch only for the sc-* modes
+
+        from seqshape.model.estimator import Estimator  # lazy: torch
 
         torch.set_num_threads(args.threads)
         try:
-            estimator = load_estimator(args.checkpoint)
+            estimator = Estimator.load(args.checkpoint)
             note = f"checkpoint: {args.checkpoint}"
         except Exception as exc:  # report and go on with the modes that need no weights
             note = f"sc-* rows skipped: cannot load {args.checkpoint!r} ({exc})"

@@ -369,3 +369,54 @@ def test_trim_removes_a_stray_fringe(kitti, tmp_path):
 
     with pytest.raises(ConfigError, match="trim"):
         LabelConfig(trim=50)
+
+
+# sha256 of the KINS files that the labeller before issue 17's speed-up (commit 694ac41's
+# parent) wrote for this scene with the oracle estimator (gt-accumulation: no estimator).
+# The fast mask steps must give the very same bytes; tests/test_amodal_masks.py and
+# tests/test_amodal_diffusion.py check each fast step against its slow reference.
+GOLDEN = {
+    "gt-accumulation": "46dda0856be537e98dd695e2bc0feb3d0eea4a8a10028b86f21b7a6b65f41994",
+    "sc-gt": "85418cd8f185e64a7b2c334353b859d1549581e81d0dac6f0a5ed26c9ce4b382",
+    "sc-seg": "e3fb1798dbb2a7f1b4fa45fe07ce2d3f4276ad0f1d62e263ccdab4c6178ac4d4",
+}
+
+
+@pytest.mark.parametrize("mode", list(GOLDEN))
+def test_labels_equal_the_labels_before_the_speed_up(kitti, tmp_path, mode):
+    import hashlib
+
+    est = None if mode == "gt-accumulation" else OracleEstimator()
+    write_labels(tmp_path / "labels.json",
+                 label_sequence(kitti, "0000", LabelConfig(mode=mode), est))
+    assert hashlib.sha256((tmp_path / "labels.json").read_bytes()).hexdigest() == GOLDEN[mode]
+
+
+def test_label_worker_pool_writes_what_one_worker_writes(kitti, tmp_path, capsys):
+    import shutil
+
+    from seqshape.cli import main
+
+    root = tmp_path / "root"
+    for sub in ("calib", "label_02", "amodal", "instances_2d"):
+        for seq in ("0000", "0001"):
+            src = next((kitti / sub).iterdir())
+            (root / sub).mkdir(parents=True, exist_ok=True)
+            shutil.copy(src, root / sub / f"{seq}{src.suffix}")
+    for seq in ("0000", "0001"):
+        shutil.copytree(kitti / "velodyne" / "0000", root / "velodyne" / seq)
+    common = ["label", "--kitti", str(root), "--mode", "gt-accumulation", "--max-frames", "2"]
+    assert main([*common, "--sequence", "0000", "--out", str(tmp_path / "one.json")]) == 0
+    for workers in (1, 2):
+        assert main([*common, "--sequence", "all", "--workers", str(workers), "--out",
+                     str(tmp_path / f"w{workers}")]) == 0
+    for seq in ("0000", "0001"):
+        assert ((tmp_path / "w2" / f"{seq}.json").read_bytes()
+                == (tmp_path / "w1" / f"{seq}.json").read_bytes())
+    assert (tmp_path / "w2" / "0000.json").read_bytes() == (tmp_path / "one.json").read_bytes()
+    assert main([*common, "--sequence", "0001,0000", "--out", str(tmp_path / "list")]) == 0
+    assert sorted(p.name for p in (tmp_path / "list").iterdir()) == ["0000.json", "0001.json"]
+    assert "-> " in capsys.readouterr().out
+    assert main([*common, "--sequence", "all", "--workers", "0", "--out",
+                 str(tmp_path / "x")]) != 0
+    assert "--workers must be >= 1" in capsys.readouterr().err

@@ -109,3 +109,72 @@ def test_mask_guided_placement_moves_a_misplaced_far_car(scene):
         off, calib, SIZE, guides=guides, align=AlignConfig(min_inside=1.0),
         guide_points={"far": off["far"][::10]})}
     assert np.array_equal(pinned["far"].amodal, plain["far"].amodal)
+
+
+def _resolve_pixel_reference(insts):
+    """The former per-pixel ownership (every mask stacked over the whole image, the wins
+    counted pair by pair): the slow, obviously right reference of ``_resolve_pixel``."""
+    from seqshape.amodal.masks import _local_depth
+
+    n = len(insts)
+    wins = np.zeros((n, n), dtype=np.int64)
+    stack = np.stack([m.amodal for m in insts])
+    rows, cols = np.nonzero(stack.sum(0) >= 2)
+    if len(rows) == 0:
+        return wins
+    pix = np.c_[cols, rows].astype(np.float64)
+    cover = stack[:, rows, cols]
+    depth = np.full(cover.shape, np.inf)
+    for i in range(n):
+        if cover[i].any():
+            depth[i, cover[i]] = _local_depth(insts[i], pix[cover[i]])
+    owner = np.argmin(depth, axis=0)
+    for i in range(n):
+        lose = cover[i] & (owner != i)
+        insts[i].visible[rows[lose], cols[lose]] = False
+        for j in range(n):
+            if i != j:
+                wins[i, j] = int(np.sum(cover[i] & cover[j] & (owner == i)))
+    return wins
+
+
+def _random_instances(seed, n, size=(60, 90)):
+    """``n`` overlapping random instances (blobs of projected points at random depths), one of
+    them without depth samples (a mask with no points: it never owns a pixel)."""
+    rng = np.random.default_rng(seed)
+    insts = []
+    for k in range(n):
+        centre = rng.uniform([10, 10], [size[1] - 10, size[0] - 10])
+        uv = centre + rng.normal(0, rng.uniform(4, 15), (300, 2))
+        z = rng.uniform(5, 40) + rng.normal(0, 1, 300)
+        insts.append(instance_from_projection(f"t{k}", uv, z, size))
+    insts[-1].z, insts[-1].uv = np.zeros(0), np.zeros((0, 2))
+    return insts
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_fast_pixel_ownership_equals_the_reference(seed):
+    from seqshape.amodal.masks import _resolve_pixel
+
+    n = 2 + seed
+    fast, slow = _random_instances(seed, n), _random_instances(seed, n)
+    wins = _resolve_pixel(fast)
+    assert np.array_equal(wins, _resolve_pixel_reference(slow))
+    assert wins.sum() > 0  # the blobs do overlap
+    for a, b in zip(fast, slow, strict=True):
+        assert np.array_equal(a.visible, b.visible)
+    assert _resolve_pixel(_random_instances(seed, 1)).sum() == 0  # one mask: no overlap
+
+
+def test_projection_of_all_clouds_at_once_equals_one_by_one(scene):
+    from seqshape.amodal.masks import project_cloud, project_clouds
+
+    calib, clouds = scene[0], dict(scene[1])
+    clouds["behind"] = np.array([[-5.0, 0.0, 0.0], [0.3, 0.0, 0.0]])  # dropped (min depth)
+    clouds["empty"] = np.zeros((0, 3))
+    together = project_clouds(clouds, calib)
+    assert list(together) == list(clouds)
+    for tid, pts in clouds.items():
+        uv, depth = project_cloud(pts, calib)
+        assert np.array_equal(together[tid][0], uv) and np.array_equal(together[tid][1], depth)
+    assert len(together["behind"][0]) == 0 and len(together["empty"][0]) == 0

@@ -21,8 +21,11 @@ from seqshape.scripts.scenes import degrade_config
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 from seqshape.testing import box_shell
 
+# options added since that release (issue 17: inference backends, labelling workers)
+ADDED = {"label": {"backend": "auto", "workers": 1}, "evaluate": {"backend": "auto"}}
+
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
-# (33229e9); paths as strings
+# (33229e9), plus ADDED; paths as strings
 RELEASED = {
     "demo": (["--out", "o"], {
         "baseline": "pretrained", "checkpoint": "pretrained", "emd_every": 1, "max_tracks": None,
@@ -31,20 +34,21 @@ RELEASED = {
         "baseline": "pretrained", "batch_tracks": 64, "boxfit": None, "boxfit_method": "lshape",
         "checkpoint": "c", "data": "d", "emd_every": 1, "emd_points": 1024, "floor": "auto",
         "hints": True, "max_tracks": None, "offline": False, "out": "o", "seed": 0,
-        "split": "auto", "view": "auto", "workers": 2}),
+        "split": "auto", "view": "auto", "workers": 2, **ADDED["evaluate"]}),
     "evaluate+flags": (["--data", "d", "--checkpoint", "c", "--out", "o", "--no-boxfit",
                         "--no-hints", "--offline", "--max-tracks", "3"], {
         "baseline": "pretrained", "batch_tracks": 64, "boxfit": False, "boxfit_method": "lshape",
         "checkpoint": "c", "data": "d", "emd_every": 1, "emd_points": 1024, "floor": "auto",
         "hints": False, "max_tracks": 3, "offline": True, "out": "o", "seed": 0,
-        "split": "auto", "view": "auto", "workers": 2}),
+        "split": "auto", "view": "auto", "workers": 2, **ADDED["evaluate"]}),
     "label": (["--sequence", "0000"], {
         "align": True, "alpha": None, "camera": None, "checkpoint": "pretrained",
         "dataset": None, "export_tracks": None, "fit_box": False, "fit_box_below": 50,
         "instances": None, "kitti": None, "mask_fallback": True, "max_frames": None,
         "mode": "sc-gt", "observed": True, "online": False, "order": "pixel", "out": None,
         "overlays": None, "polygons": False, "refine": "smooth", "root": None,
-        "sequence": "0000", "threads": 1, "trim": 1.0, "val_fraction": 0.2}),
+        "sequence": "0000", "threads": 1, "trim": 1.0, "val_fraction": 0.2,
+        **ADDED["label"]}),
     "label+flags": (["--sequence", "0000", "--no-align", "--no-refine", "--no-observed",
                      "--no-mask-fallback", "--fit-box", "--trim", "2.5", "--instances",
                      "i.json", "--alpha", "0.5"], {
@@ -53,7 +57,8 @@ RELEASED = {
         "instances": "i.json", "kitti": None, "mask_fallback": False, "max_frames": None,
         "mode": "sc-gt", "observed": False, "online": False, "order": "pixel", "out": None,
         "overlays": None, "polygons": False, "refine": "none", "root": None,
-        "sequence": "0000", "threads": 1, "trim": 2.5, "val_fraction": 0.2}),
+        "sequence": "0000", "threads": 1, "trim": 2.5, "val_fraction": 0.2,
+        **ADDED["label"]}),
     "tracks": (["--dataset", "kitti", "--root", "r", "--out", "o"], {
         "classes": "car,van,truck,bus,trailer", "dataset": "kitti", "ground": "plane",
         "margin": 0.2, "min_points": 10, "out": "o", "reference": True,

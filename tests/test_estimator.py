@@ -99,7 +99,10 @@ def test_checkpoint_round_trip(tmp_path):
     assert not est.recurrent and est.kind == "baseline" and est.metrics["val_cd_m"] == 0.05
     pts = np.random.default_rng(3).normal(size=(30, 3)).astype(np.float32)
     ref = Estimator(model).step(["a"], [pts])[0]
-    np.testing.assert_array_equal(est.step(["a"], [pts])[0].complete, ref.complete)
+    exact = Estimator.from_checkpoint(path, backend="torch")  # the reference: bit for bit
+    np.testing.assert_array_equal(exact.step(["a"], [pts])[0].complete, ref.complete)
+    # the loaders' default backend ("auto"): float32 arithmetic in another order
+    np.testing.assert_allclose(est.step(["a"], [pts])[0].complete, ref.complete, atol=1e-5)
 
 
 @pytest.mark.filterwarnings("ignore:Detected pickle protocol")

@@ -128,12 +128,13 @@ def segment_frame(scan, camera, masks, min_depth: float = 1.0, grow: bool = True
     (:func:`~seqshape.amodal.diffusion.grow_instances`).
     """
     camera = as_camera(camera)
-    pts = np.asarray(scan, dtype=np.float64)[:, :3]
+    pts = np.asarray(scan)[:, :3].astype(np.float64)  # (N, 3) contiguous
     pts = pts[~ground_mask(pts, plane=plane)]
     uv, depth = camera.project(pts)
     keep = camera.in_image(uv, depth, min_depth=min_depth)
-    labels = diffuse_labels(pts[keep], uv[keep], masks, **diffusion_kwargs)
-    parts = [pts[keep][labels == m] for m in range(len(masks))]
+    seen = pts[keep]  # (M, 3): the points in the image
+    labels = diffuse_labels(seen, uv[keep], masks, **diffusion_kwargs)
+    parts = [seen[labels == m] for m in range(len(masks))]
     if grow:
         gap_kw = {k: diffusion_kwargs[k] for k in ("cluster_gap", "cluster_gap_per_m")
                   if k in diffusion_kwargs}

@@ -110,9 +110,8 @@ def components(points, gap: float) -> np.ndarray:
     n = len(points)
     if n <= 1:
         return np.zeros(n, dtype=np.int64)
-    keys = np.floor(points / (gap / 2)).astype(np.int64)
-    _, inv = np.unique(keys, axis=0, return_inverse=True)
-    inv = inv.ravel()
+    keys = np.floor(points / (gap / 2)).astype(np.int64)  # (N, 3)
+    inv = _voxel_ids(keys)
     nv = int(inv.max()) + 1
     reps = np.zeros((nv, 3))
     np.add.at(reps, inv, points)
@@ -121,6 +120,18 @@ def components(points, gap: float) -> np.ndarray:
     g = sp.csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(nv, nv))
     _, comp = connected_components(g, directed=False)
     return comp[inv]
+
+
+def _voxel_ids(keys: np.ndarray) -> np.ndarray:
+    """``(N,)`` index of each integer voxel ``keys (N, 3)`` among the distinct voxels in
+    lexicographic order (``np.unique(keys, axis=0, return_inverse=True)``, on one int64 key
+    per voxel, which sorts the same way)."""
+    keys = keys - keys.min(0)
+    span = keys.max(0) + 1  # (3,)
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0 ** 62:  # no room: the slow way
+        return np.unique(keys, axis=0, return_inverse=True)[1].ravel()
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    return np.unique(flat, return_inverse=True)[1].ravel()
 
 
 def largest_cluster(points, gap: float) -> np.ndarray:
@@ -194,9 +205,10 @@ def diffuse_labels(points, uv, masks: Sequence[np.ndarray], k: int = 10, sigma: 
         return labels
     y = pixel_labels(uv, masks)  # (N, C+1)
     w = _knn_graph(points, k, sigma, max_edge)
-    lab = y.copy()
+    lab, pull = y.copy(), lam * y  # (N, C+1) each
     for _ in range(iterations):
-        lab = w @ lab + lam * y
+        lab = w @ lab
+        lab += pull
         lab /= lab.sum(1, keepdims=True)
     best = lab.argmax(1)
     labels = np.where(best == c, BACKGROUND, best)
@@ -210,6 +222,16 @@ def diffuse_labels(points, uv, masks: Sequence[np.ndarray], k: int = 10, sigma: 
     return labels
 
 
+def _in_reach(points: np.ndarray, xs: np.ndarray, lo: np.ndarray, hi: np.ndarray
+              ) -> np.ndarray:
+    """Indices (ascending) of the ``points (M, 3)`` inside the box ``[lo, hi]``; ``xs`` is
+    their x column (contiguous). Only these can lie within ``max_grow`` of an instance whose
+    points span ``[lo + max_grow, hi - max_grow]``."""
+    near = np.flatnonzero((xs >= lo[0]) & (xs <= hi[0]))
+    sub = points[near, 1:]  # (K, 2)
+    return near[np.all((sub >= lo[1:]) & (sub <= hi[1:]), axis=1)]
+
+
 def grow_instances(parts: Sequence[np.ndarray], outside, cluster_gap: float = 0.5,
                    cluster_gap_per_m: float = 0.025, max_grow: float = 5.0) -> list[np.ndarray]:
     """Each instance's points ``parts[m] (N_m, 3)`` plus the ``outside (M, 3)`` points
@@ -220,18 +242,21 @@ def grow_instances(parts: Sequence[np.ndarray], outside, cluster_gap: float = 0.
         return parts
     best = np.full(len(outside), -1)
     best_d = np.full(len(outside), np.inf)
+    xs = np.ascontiguousarray(outside[:, 0])  # (M,)
     for m, p in enumerate(parts):
         if len(p) == 0:
             continue
-        d, _ = cKDTree(p).query(outside, distance_upper_bound=max_grow)
-        cand = np.flatnonzero(np.isfinite(d))
+        near = _in_reach(outside, xs, p.min(0) - max_grow, p.max(0) + max_grow)
+        d, _ = cKDTree(p).query(outside[near], distance_upper_bound=max_grow)  # (K,)
+        found = np.isfinite(d)
+        cand, d = near[found], d[found]
         if len(cand) == 0:
             continue
         gap = cluster_gap_for(p, cluster_gap, cluster_gap_per_m)
         comp = components(np.concatenate([p, outside[cand]]), gap)
         reached = np.isin(comp[len(p):], np.unique(comp[:len(p)]))
         sel = cand[reached]
-        d_sel = d[sel]
+        d_sel = d[reached]
         closer = d_sel < best_d[sel]
         best[sel[closer]], best_d[sel[closer]] = m, d_sel[closer]
     return [np.concatenate([p, outside[best == m]]) for m, p in enumerate(parts)]

@@ -75,8 +75,12 @@ DEFAULT_REFINE = "smooth"  # measured best for sc-seg, equal to backfill for sc-
 class LabelConfig:
     """Options of :func:`label_log`.
 
-    mode: one of :data:`MODES`.
+    mode: gt-accumulation (3D boxes, accumulated LiDAR points), sc-gt (3D boxes, completed
+        shapes) or sc-seg (no boxes: 2D instance masks and completed shapes).
     checkpoint: estimator weights (path), or "pretrained" for the shipped ones (sc-* modes).
+    backend: sc-* modes: the estimator's inference backend, one of
+        seqshape.model.engine.BACKENDS ('auto': the fastest one that passes its check against
+        PyTorch on this machine; docs/model.md).
     refine: offline refinement, one of ``REFINE_MODES`` (sc-* modes).
     order: occlusion rule of :func:`seqshape.amodal.masks.resolve_occlusion`.
     alpha: alpha of the alpha shapes (None = automatic).
@@ -127,6 +131,7 @@ class LabelConfig:
 
     mode: str = "sc-gt"
     checkpoint: str | None = "pretrained"
+    backend: str = "auto"
     refine: str = DEFAULT_REFINE
     order: str = "pixel"
     alpha: float | None = None
@@ -179,12 +184,12 @@ class LabelResult:
     camera: str | None = None
 
 
-def load_estimator(checkpoint: str | None):
+def load_estimator(checkpoint: str | None, backend: str = "auto"):
     """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped sequential
     one): :meth:`seqshape.model.estimator.Estimator.load`."""
     from seqshape.model.estimator import Estimator  # lazy: torch (modes without a network)
 
-    return Estimator.load("pretrained" if checkpoint is None else checkpoint)
+    return Estimator.load("pretrained" if checkpoint is None else checkpoint, backend=backend)
 
 
 class TrackReplay:
@@ -352,7 +357,7 @@ def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict):
     if cfg.mode == "gt-accumulation":
         clouds = [gt_accumulation_clouds(t) for t in tracks]
     else:
-        est = estimator if estimator is not None else load_estimator(cfg.checkpoint)
+        est = estimator if estimator is not None else load_estimator(cfg.checkpoint, cfg.backend)
         est.reset()
         if not cfg.online and _has_network(est):
             est = offline_replay(est, inputs, log, cfg.offline)

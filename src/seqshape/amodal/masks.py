@@ -71,6 +71,23 @@ def project_cloud(points, camera, image_size=None, min_depth: float = MIN_DEPTH)
     return uv[keep], depth[keep]
 
 
+def project_clouds(clouds: dict[str, np.ndarray], camera, min_depth: float = MIN_DEPTH
+                   ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """:func:`project_cloud` of every cloud ``{track_id: (K, 3)}`` of one image in one
+    projection (the clouds concatenated): ``{track_id: (uv (M, 2), depth (M,))}``."""
+    arrays = [np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in clouds.values()]
+    if not arrays:
+        return {}
+    uv, depth = as_camera(camera).project(np.concatenate(arrays))  # (N, 2), (N,)
+    keep = np.isfinite(depth) & (depth > min_depth) & np.all(np.isfinite(uv), axis=1)
+    ends = np.cumsum([len(a) for a in arrays])
+    out = {}
+    for tid, a, b in zip(clouds, ends - [len(x) for x in arrays], ends, strict=True):
+        k = keep[a:b]
+        out[tid] = (uv[a:b][k], depth[a:b][k])
+    return out
+
+
 def instance_from_projection(track_id: str, uv, depth, image_size,
                              alpha: float | None = None) -> InstanceMask:
     """An :class:`InstanceMask` (visible mask not yet resolved) from projected points."""
@@ -90,29 +107,45 @@ def _local_depth(inst: InstanceMask, pix_uv: np.ndarray) -> np.ndarray:
     return inst.z[idx.reshape(len(pix_uv), -1)].min(axis=1)
 
 
+def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)`` (end exclusive) of a non-empty bool mask's pixels."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def _overlap_pixels(insts: list[InstanceMask]) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows (P,), cols (P,))`` of the pixels covered by two or more amodal masks, row-major
+    (each mask is counted inside its own bounding box only)."""
+    h, w = insts[0].amodal.shape
+    boxes = [_box(m.amodal) if m.amodal.any() else (0, 0, 0, 0) for m in insts]
+    count = np.zeros((h, w), dtype=np.int32)
+    for m, (y0, y1, x0, x1) in zip(insts, boxes, strict=True):
+        count[y0:y1, x0:x1] += m.amodal[y0:y1, x0:x1]
+    return np.nonzero(count >= 2)
+
+
 def _resolve_pixel(insts: list[InstanceMask]) -> np.ndarray:
     """Per-pixel ownership; returns ``wins (n, n)``: pixels of overlap i-vs-j won by i."""
     n = len(insts)
     wins = np.zeros((n, n), dtype=np.int64)
-    stack = np.stack([m.amodal for m in insts])  # (n, h, w)
-    count = stack.sum(0)
-    rows, cols = np.nonzero(count >= 2)
+    rows, cols = _overlap_pixels(insts)
     if len(rows) == 0:
         return wins
     pix = np.c_[cols, rows].astype(np.float64)  # (P, 2) as (u, v)
-    cover = stack[:, rows, cols]  # (n, P)
+    cover = np.stack([m.amodal[rows, cols] for m in insts])  # (n, P)
     depth = np.full(cover.shape, np.inf)
     for i in range(n):
         sel = cover[i]
         if sel.any():
             depth[i, sel] = _local_depth(insts[i], pix[sel])
     owner = np.argmin(depth, axis=0)  # (P,)
+    own = np.zeros(cover.shape, dtype=np.float64)  # (n, P): the owner, where it covers
+    own[owner, np.arange(len(owner))] = cover[owner, np.arange(len(owner))]
+    wins = np.rint(own @ cover.T.astype(np.float64)).astype(np.int64)  # won by i over j
+    np.fill_diagonal(wins, 0)
     for i in range(n):
         lose = cover[i] & (owner != i)
         insts[i].visible[rows[lose], cols[lose]] = False
-        for j in range(n):
-            if i != j:
-                wins[i, j] = int(np.sum(cover[i] & cover[j] & (owner == i)))
     return wins
 
 
@@ -174,8 +207,7 @@ def frame_masks(clouds: dict[str, np.ndarray], camera, image_size: tuple[int, in
     this frame, keep it from moving off them.
     """
     insts = []
-    for tid, pts in clouds.items():
-        uv, depth = project_cloud(pts, camera, image_size, min_depth=min_depth)
+    for tid, (uv, depth) in project_clouds(clouds, camera, min_depth=min_depth).items():
         if len(uv) == 0:
             continue
         inst = instance_from_projection(tid, uv, depth, image_size, alpha=alpha)
@@ -191,8 +223,8 @@ def frame_masks(clouds: dict[str, np.ndarray], camera, image_size: tuple[int, in
                 insts.append(m)
     insts = resolve_occlusion(insts, order=order)
     if align is not None and guides:
-        pix = {tid: project_cloud(p, camera, image_size, min_depth=min_depth)[0]
-               for tid, p in (guide_points or {}).items()}
+        pix = {tid: uv for tid, (uv, _) in
+               project_clouds(guide_points or {}, camera, min_depth=min_depth).items()}
         if align_instances(insts, guides, align, pix):
             insts = resolve_occlusion(insts, order=order)
     return insts

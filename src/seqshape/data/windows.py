@@ -241,6 +241,27 @@ def collate(items: Sequence[dict[str, np.ndarray]]) -> dict[str, torch.Tensor]:
     return {k: torch.from_numpy(np.stack([it[k] for it in items])) for k in items[0]}
 
 
+#: Batch entries with a frame axis (B, W, ...); the others (``complete``, ``start``) have none.
+FRAME_KEYS = ("points", "lengths", "poses", "valid", "length", "dts", "counts")
+
+
+def trim_padding(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The batch without its trailing frames in which no window has points or a known pose.
+
+    Windows of tracks shorter than W end in padding (no points, ``valid`` False). The network
+    is causal (frame t's estimate depends on frames <= t only) and the losses skip frames that
+    are not ``valid``, so dropping the frames after the last one that has points or a pose in
+    some window changes no loss and no gradient; it only saves the encoder's work on them.
+    At least one frame is kept. The batch is returned unchanged when there is nothing to trim.
+    """
+    live = ((batch["lengths"] > 0) | batch["valid"]).any(0)  # (W,)
+    last = live.nonzero()
+    w = max(1, int(last[-1]) + 1) if len(last) else 1
+    if w == live.shape[0]:
+        return batch
+    return {k: v[:, :w] if k in FRAME_KEYS else v for k, v in batch.items()}
+
+
 def stream_indices(n: int, seed: int, key: int, start: int, count: int) -> list[tuple[int, int]]:
     """Positions ``start .. start+count-1`` of an endless shuffled stream over ``n`` items.
 

@@ -28,6 +28,7 @@ from seqshape.evaluation.plots import write_plots
 from seqshape.evaluation.report import write_metrics
 from seqshape.evaluation.runner import evaluate_tracks
 from seqshape.model.boxfit import BoxFitEstimator
+from seqshape.model.engine import BACKENDS
 from seqshape.model.estimator import Estimator
 from seqshape.model.offline import OfflineEstimator
 
@@ -57,6 +58,8 @@ class EvaluateConfig:
         unchanged by it).
     hints: feed the networks each track's class and ego poses, as a user's pipeline would
         (off: the points alone, and the heading step then never acts; docs/evaluation.md).
+    backend: inference backend of both networks (seqshape.model.engine.BACKENDS; 'auto': the
+        fastest one that passes its check against PyTorch on this machine; docs/model.md).
     """
 
     split: str = "auto"
@@ -72,16 +75,19 @@ class EvaluateConfig:
     seed: int = 0
     offline: bool = False
     hints: bool = True
+    backend: str = "auto"
 
     def __post_init__(self):
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"--backend {self.backend!r}: choose from {', '.join(BACKENDS)}")
         if self.max_tracks is not None and self.max_tracks < 1:
             raise ConfigError("--max-tracks must be >= 1")
 
 
-def load_estimator(spec: str, kind: str):
+def load_estimator(spec: str, kind: str, backend: str = "auto"):
     """:meth:`Estimator.load` of ``spec`` ('pretrained': the shipped weights of ``kind``),
     checked to be of ``kind``; the error names the flag that takes the other kind."""
-    est = Estimator.load(kind if spec == "pretrained" else spec)
+    est = Estimator.load(kind if spec == "pretrained" else spec, backend=backend)
     if est.kind != kind:
         other = "baseline" if kind == "sequential" else "sequential"
         flag = "--baseline" if kind == "sequential" else "--checkpoint"
@@ -156,8 +162,8 @@ def mode_note(path: Path, modes: dict) -> None:
 def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfig) -> dict:
     """The methods to score: the sequential model (offline when asked), the baseline, and the
     box fit when ``cfg.boxfit`` (None: for real datasets)."""
-    estimators = {"sequential": load_estimator(checkpoint, "sequential"),
-                  "baseline": load_estimator(baseline, "baseline")}
+    estimators = {"sequential": load_estimator(checkpoint, "sequential", cfg.backend),
+                  "baseline": load_estimator(baseline, "baseline", cfg.backend)}
     if cfg.offline:
         estimators["sequential"] = OfflineEstimator(estimators["sequential"])
     use_boxfit = dataset_is_real(dataset) if cfg.boxfit is None else cfg.boxfit

@@ -126,7 +126,9 @@ class PointEncoder(nn.Module):
         real_first = torch.argsort((~mask).to(torch.uint8), dim=1, stable=True)
         rows = real_first.gather(1, torch.arange(n, device=points.device) % count.clamp(min=1))
         x = self.mlp1(points.gather(1, rows.unsqueeze(-1).expand(-1, -1, c_in)))
-        g = x.amax(dim=1)
+        # max with indices: its backward scatters into the argmax rows (amax's compares every
+        # element with the max); ties are copies of one row, so the weight gradients agree
+        g = x.max(dim=1).values
         # mlp2's first layer on [x, g] is x W_x^T + (g W_g^T + b): the global half is computed
         # once per frame instead of once per point
         first, c = self.mlp2[0], x.shape[-1]
@@ -134,7 +136,7 @@ class PointEncoder(nn.Module):
         y += F.linear(g, first.weight[:, c:], first.bias).unsqueeze(1)
         if len(self.mlp2) > 1:  # mlp2[1] is its first ReLU
             y = self.mlp2[2:](torch.relu_(y))
-        out = y.amax(dim=1)
+        out = y.max(dim=1).values
         return torch.where(count > 0, out, torch.zeros_like(out))
 
 
@@ -246,8 +248,8 @@ class ShapePoseNet(nn.Module):
         if self.cfg.view_input:
             view = frame_mean / frame_mean.norm(dim=-1, keepdim=True).clamp(min=1e-6)
             x = torch.cat([x, view.unsqueeze(2).expand(-1, -1, n, -1)], dim=-1)
-        feats = self.encoder(x.reshape(b * w, n, x.shape[-1]),
-                             mask.reshape(b * w, n)).reshape(b, w, -1)
+        feats = self._frame_features(x.reshape(b * w, n, x.shape[-1]),
+                                     mask.reshape(b * w, n)).reshape(b, w, -1)
         h = points.new_zeros(b, self.state_size) if hidden is None else hidden
         hd = self.cfg.hidden
         mean = points.new_zeros(b, 3) if last_mean is None else last_mean
@@ -293,6 +295,20 @@ class ShapePoseNet(nn.Module):
         if self.motion:
             out["motion"] = torch.stack(motions, 1)
         return out
+
+    def _frame_features(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Encoder features (F, C) of frames (F, N, c) with point masks (F, N): the encoder
+        runs on the frames with points only (an empty frame's feature is 0 and unused: its
+        state is held), which skips 20-30 % of a training window's frames."""
+        has = mask.any(dim=1)  # (F,)
+        if bool(has.all()):
+            return self.encoder(x, mask)
+        idx = has.nonzero().squeeze(1)
+        out = x.new_zeros(x.shape[0], self.cfg.feature_size)
+        if len(idx) == 0:
+            return out
+        return out.index_copy(0, idx, self.encoder(x.index_select(0, idx),
+                                                   mask.index_select(0, idx)))
 
     def _gru(self, f: torch.Tensor, m: torch.Tensor | None, h: torch.Tensor) -> torch.Tensor:
         """One GRU step on ``[f, m]`` (``m`` None: on ``f``, the paper's GRU).

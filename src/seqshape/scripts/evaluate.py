@@ -14,11 +14,12 @@ import seqshape.evaluation.evaluate as _evaluate
 from seqshape._deprecated import forward
 from seqshape.evaluation.evaluate import EvaluateConfig, evaluate_dataset
 from seqshape.evaluation.report import metrics_markdown
+from seqshape.model.engine import BACKENDS
 from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 
 HELP = "evaluate shape and pose estimates on a dataset's val split (or a real dataset)"
 FIELDS = ["split", "boxfit", "boxfit_method", "max_tracks", "emd_every", "emd_points", "workers",
-          "batch_tracks", "floor", "view", "seed", "offline", "hints"]
+          "batch_tracks", "floor", "view", "seed", "offline", "hints", "backend"]
 _MOVED = ("load_estimator", "select_split", "dataset_is_real", "choose_view_track",
           "evaluate_to", "mode_note")
 
@@ -33,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     add_config_arguments(parser, EvaluateConfig, FIELDS,
                          boxfit_method={"choices": ("lshape", "min_area_rect")},
-                         floor={"choices": ("auto", "resample", "split")})
+                         floor={"choices": ("auto", "resample", "split")},
+                         backend={"choices": BACKENDS})
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,0 +1,390 @@
+"""Inference backends of :meth:`seqshape.model.estimator.Estimator.step`.
+
+One streaming step of a :class:`~seqshape.model.network.ShapePoseNet` (one frame per track,
+W = 1) is a pure function of the frame and the state the track carries::
+
+    (points (B, N, 3), lengths (B,), hidden (B, S), mean (B, 3), seen (B,), scale (B,),
+     dts (B,), counts (B,), gap (B,))  ->  (complete (B, K, 3), pose (B, 4), hidden, mean,
+                                            seen, gap)
+
+:class:`StepGraph` is that function as a small torch module written for inference: the rows of
+a frame beyond its ``lengths`` must be cyclic copies of its real rows (what
+:meth:`Estimator.step` builds), so both max-pools are plain maxima (no gather), the weights are
+split and made contiguous once, and the GRU cell is spelled out (exportable). The recurrent
+state stays outside, so streaming, resets and many tracks work the same on every backend.
+
+Backends (:data:`BACKENDS`), each tested against the PyTorch reference (the model's own
+``forward``, backend ``"torch"``):
+
+* ``"onnx"``: :class:`StepGraph` exported to ONNX (dynamic batch and point axes) and run by
+  ONNX Runtime (optional extra ``seqshape[fast]``); float32, within 1e-4 m of the reference.
+* ``"torch-lean"``: :class:`StepGraph` run by PyTorch in float32 (the reference's arithmetic
+  without its module and masking overhead).
+
+``"auto"`` (:func:`select_backend`) takes the first of :data:`AUTO_ORDER` whose runtime is
+installed and whose outputs match the reference on this machine
+(:func:`seqshape.model.estimator.check_backend`), warning about any it passes over, and the
+reference when none qualifies; the decision is cached per process and model.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import warnings
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from seqshape.errors import ConfigError, MissingDependencyError, require
+from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet, motion_features
+from seqshape.model.transforms import place_points
+
+log = logging.getLogger(__name__)
+
+#: Every backend name :meth:`Estimator.load` accepts.
+BACKENDS = ("auto", "torch", "onnx", "torch-lean")
+#: Candidates of ``backend="auto"``, fastest first (measured in docs/model.md,
+#: "Inference backends (issue 17)"); the reference ``"torch"`` is the fallback.
+AUTO_ORDER = ("onnx", "torch-lean")
+#: Inputs and outputs of :class:`StepGraph` (and of the exported ONNX graph), in order.
+GRAPH_INPUTS = ("points", "lengths", "hidden", "mean", "seen", "scale", "dts", "counts", "gap")
+GRAPH_OUTPUTS = ("complete", "pose", "hidden_out", "mean_out", "seen_out", "gap_out")
+#: Grouping of the tracks of one step by point count (:func:`length_buckets`).
+BUCKET_FILL, BUCKET_MIN_ROWS = 0.75, 16
+#: ONNX opset of the export.
+ONNX_OPSET = 17
+#: Agreement of a fast backend with the reference: shape points (m), pose centre (m), yaw
+#: (rad); used by ``check_backend`` and the tests. The fast backends compute the reference's
+#: float32 arithmetic in another order; measured on the shipped and round-8 weights, 40
+#: tracks over 8 steps: up to 0.8 mm, 0.02 mm, 2e-4 rad (ONNX Runtime), where the reference
+#: itself, batched against track by track, differs by up to 0.2 mm, 0.01 mm, 7e-5 rad (the
+#: yaw of a nearly degenerate (cos, sin) output moves most; the shape follows it).
+TOLERANCE = (2e-3, 2e-4, 1e-3)
+
+
+class StepGraph(nn.Module):
+    """One streaming step of ``model`` (see the module docstring for the signature).
+
+    ``model``'s weights are shared, not copied (the split first layer of the second point
+    MLP excepted).
+    """
+
+    def __init__(self, model: ShapePoseNet):
+        super().__init__()
+        cfg = model.cfg
+        self.cfg, self.recurrent, self.motion = cfg, model.recurrent, model.motion
+        enc = model.encoder
+        self.mlp1 = enc.mlp1
+        first, c = enc.mlp2[0], cfg.encoder1[-1]
+        # mlp2's first layer on [x, g]: x W_x^T + (g W_g^T + b), the global half once a frame
+        self.register_buffer("w2x", first.weight[:, :c].contiguous().detach())
+        self.register_buffer("w2g", first.weight[:, c:].contiguous().detach())
+        self.register_buffer("b2", first.bias.detach().clone())
+        self.mlp2_rest = enc.mlp2[2:] if len(enc.mlp2) > 1 else None
+        self.fusion, self.skip = model.fusion, model.skip
+        if self.recurrent:
+            nf, w_ih = cfg.feature_size, model.fusion.weight_ih.detach()
+            self.register_buffer("w_if", w_ih[:, :nf].contiguous())
+            self.register_buffer("w_im", w_ih[:, nf:].contiguous())
+        self.shape_decoder, self.pose_decoder = model.shape_decoder, model.pose_decoder
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """Frame features (B, F) of demeaned points (B, N, C) whose padded rows are copies.
+
+        The per-point layers run on (B * N, C) matrices, so that ONNX Runtime fuses their
+        biases and ReLUs into the matrix products (Gemm / FusedGemm nodes)."""
+        b, n, c = x.shape
+        x = self.mlp1(x.reshape(b * n, c))  # (B * N, C1)
+        g = x.reshape(b, n, -1).amax(dim=1)  # (B, C1)
+        y = F.linear(x, self.w2x).reshape(b, n, -1) + F.linear(g, self.w2g, self.b2).unsqueeze(1)
+        if self.mlp2_rest is not None:
+            y = self.mlp2_rest(torch.relu(y).reshape(b * n, -1))
+        return y.reshape(b, n, -1).amax(dim=1)  # (B, F)
+
+    def gru(self, f: torch.Tensor, m: torch.Tensor | None, h: torch.Tensor) -> torch.Tensor:
+        """``nn.GRUCell`` on ``[f, m]`` spelled out (PyTorch's gate order r, z, n)."""
+        g = self.fusion
+        gi = F.linear(f, self.w_if, g.bias_ih)  # (B, 3H)
+        if m is not None:
+            gi = gi + F.linear(m, self.w_im)
+        gh = F.linear(h, g.weight_hh, g.bias_hh)
+        i_r, i_z, i_n = gi.chunk(3, dim=1)
+        h_r, h_z, h_n = gh.chunk(3, dim=1)
+        r, z = torch.sigmoid(i_r + h_r), torch.sigmoid(i_z + h_z)
+        n = torch.tanh(i_n + r * h_n)
+        return (1.0 - z) * n + z * h
+
+    def forward(self, points, lengths, hidden, mean, seen, scale, dts, counts, gap):
+        n = points.shape[1]
+        mask = (torch.arange(n) < lengths.unsqueeze(1)).unsqueeze(-1)  # (B, N, 1)
+        count = lengths.clamp(min=1).unsqueeze(-1).to(points.dtype)
+        frame_mean = (points * mask.to(points.dtype)).sum(1) / count  # (B, 3)
+        x = (points - frame_mean.unsqueeze(1)) / scale[:, None, None]
+        if self.cfg.view_input:
+            view = frame_mean / frame_mean.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+            x = torch.cat([x, view.unsqueeze(1).expand(-1, n, -1)], dim=-1)
+        f = self.encode(x)
+        has = lengths > 0  # (B,)
+        since = gap
+        m = None
+        if self.motion:
+            since = gap + dts
+            m = motion_features(frame_mean, mean, seen, since, counts, scale)
+            since = torch.where(has, torch.zeros_like(since), since)
+        hd = self.cfg.hidden
+        if not self.recurrent:
+            h_new = self.fusion(f)
+        elif self.skip is None:
+            h_new = self.gru(f, m, hidden)
+        else:
+            h_new = torch.cat([self.gru(f, m, hidden[:, :hd]), self.skip(f)], dim=-1)
+        h = torch.where(has.unsqueeze(1), h_new, hidden)
+        mean_out = torch.where(has.unsqueeze(1), frame_mean, mean)
+        d = h if self.skip is None else h[:, :hd] + h[:, hd:]
+        p = self.pose_decoder(d)  # (B, 5)
+        yaw = torch.atan2(p[:, 4], p[:, 3])
+        pose = torch.cat([p[:, :3] * scale.unsqueeze(1) + mean_out, yaw.unsqueeze(1)], dim=1)
+        shape = self.shape_decoder(d).reshape(-1, self.cfg.num_complete, 3)
+        shape = shape * scale[:, None, None]
+        if self.cfg.shape_frame == "sensor":
+            complete = shape + mean_out.unsqueeze(1)
+        else:
+            complete = place_points(shape, pose)
+        return complete, pose, h, mean_out, seen | has, since
+
+
+@dataclass
+class StepInputs:
+    """Numpy inputs of one step of the rows a backend computes (see :data:`GRAPH_INPUTS`)."""
+
+    points: np.ndarray  # (B, N, 3) float32, rows past lengths are cyclic copies
+    lengths: np.ndarray  # (B,) int64
+    hidden: np.ndarray  # (B, S) float32
+    mean: np.ndarray  # (B, 3) float32
+    seen: np.ndarray  # (B,) bool
+    scale: np.ndarray  # (B,) float32 (ones without scale_norm)
+    dts: np.ndarray  # (B,) float32, finite and >= 0
+    counts: np.ndarray  # (B,) int64
+    gap: np.ndarray  # (B,) float32
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in GRAPH_INPUTS}
+
+
+class TorchGraphEngine:
+    """:class:`StepGraph` run by PyTorch in float32 (``"torch-lean"``).
+
+    ``threads``: torch's intra-op threads during this engine's steps only (restored after;
+    None: 1)."""
+
+    name = "torch-lean"
+
+    def __init__(self, model: ShapePoseNet, threads: int | None = None):
+        self.threads = threads or 1
+        self.graph = StepGraph(model).eval()
+
+    def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
+        """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""
+        args = [torch.from_numpy(a) for a in inputs.arrays().values()]
+        with torch.inference_mode(), _torch_threads(self.threads):
+            out = self.graph(*args)
+        return tuple(o.numpy() for o in out)
+
+
+class OnnxEngine:
+    """:class:`StepGraph` exported to ONNX and run by ONNX Runtime (``"onnx"``).
+
+    ``threads``: ONNX Runtime's intra-op threads (None: 1); its worker threads do not spin
+    while waiting, so other processes on the same cores keep their time.
+    """
+
+    name = "onnx"
+
+    def __init__(self, model: ShapePoseNet, threads: int | None = None):
+        ort = require("onnxruntime", "the ONNX inference backend", "seqshape[fast]")
+        require("onnx", "exporting the network to ONNX", "seqshape[fast]")
+        self.threads = threads
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(threads or 1)
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        opts.log_severity_level = 3
+        self.session = ort.InferenceSession(export_onnx(model), opts,
+                                            providers=["CPUExecutionProvider"])
+        self._inputs = [i.name for i in self.session.get_inputs()]
+
+    def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
+        """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""
+        arrays = inputs.arrays()
+        return tuple(self.session.run(None, {k: arrays[k] for k in self._inputs}))
+
+
+def export_onnx(model: ShapePoseNet) -> bytes:
+    """The ONNX model (bytes) of one streaming step of ``model`` (:class:`StepGraph`), with
+    dynamic batch and point axes. PyTorch's exporter needs the ``onnx`` package."""
+    graph = StepGraph(model).eval()
+    example = example_inputs(model, batch=2, points=5).arrays()
+    buf = io.BytesIO()
+    axes = {name: {0: "batch"} for name in (*GRAPH_INPUTS, *GRAPH_OUTPUTS)}
+    axes["points"] = {0: "batch", 1: "points"}
+    with warnings.catch_warnings(), torch.inference_mode():
+        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
+        torch.onnx.export(graph, tuple(torch.from_numpy(a) for a in example.values()), buf,
+                          input_names=list(GRAPH_INPUTS), output_names=list(GRAPH_OUTPUTS),
+                          dynamic_axes=axes, opset_version=ONNX_OPSET, dynamo=False)
+    return buf.getvalue()
+
+
+def example_inputs(model: ShapePoseNet, batch: int, points: int,
+                   seed: int = 0) -> StepInputs:
+    """Random valid :class:`StepInputs` (the export's example and a smoke input)."""
+    rng = np.random.default_rng(seed)
+    lengths = rng.integers(1, points + 1, size=batch)
+    pts = np.zeros((batch, points, 3), np.float32)
+    for i, n in enumerate(lengths):
+        pts[i] = np.resize(rng.normal(size=(n, 3)) + [10.0, 0.0, 0.0], (points, 3))
+    return StepInputs(pts, lengths.astype(np.int64),
+                      np.zeros((batch, model.state_size), np.float32),
+                      np.zeros((batch, 3), np.float32), np.zeros(batch, bool),
+                      np.ones(batch, np.float32), np.full(batch, DEFAULT_FRAME_PERIOD, np.float32),
+                      lengths.astype(np.int64), np.zeros(batch, np.float32))
+
+
+def length_buckets(lengths: np.ndarray, fill: float = BUCKET_FILL,
+                   min_rows: int = BUCKET_MIN_ROWS) -> list[np.ndarray]:
+    """Rows grouped for separate passes so that little of the padded batch is padding.
+
+    Longest first: a group takes the rows at least ``fill`` times its longest (at least
+    ``min_rows`` rows; a remainder under ``min_rows`` joins the last group), so at most
+    ``1 / fill - 1`` of a group's encoder work is padding instead of up to ``N / min(n_i)``.
+
+    >>> [g.tolist() for g in length_buckets(np.array([10, 256, 40, 250, 200]), min_rows=1)]
+    [[1, 3, 4], [2], [0]]
+    """
+    order = np.argsort(-np.asarray(lengths), kind="stable")
+    desc = np.asarray(lengths)[order]
+    groups, start = [], 0
+    while start < len(order):
+        end = start + int(np.searchsorted(-desc[start:], -fill * desc[start], side="right"))
+        end = max(end, start + min_rows)
+        if len(order) - end < min_rows:
+            end = len(order)
+        groups.append(order[start:end])
+        start = end
+    return groups
+
+
+def pack_frames(frames: list[np.ndarray], buffer: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Frames (n_i, 3) as one contiguous (B, N, 3) float32 batch, N = max(1, max n_i), rows
+    past n_i cyclic copies of the frame's points (zeros for an empty frame), as
+    :class:`StepGraph` needs. ``buffer`` (flat float32) is reused when large enough; returns
+    (batch, buffer) with the buffer to pass next time."""
+    b, n = len(frames), max(1, max(len(f) for f in frames))
+    if buffer.size < b * n * 3:
+        buffer = np.empty(max(b * n * 3, 2 * buffer.size), np.float32)
+    batch = buffer[:b * n * 3].reshape(b, n, 3)
+    for i, f in enumerate(frames):
+        k = len(f)
+        if k == n:
+            batch[i] = f
+        elif k == 0:
+            batch[i] = 0.0
+        else:
+            np.take(f, np.arange(n) % k, axis=0, out=batch[i])
+    return batch, buffer
+
+
+def check_stream(num_points: int, seed: int = 0) -> list[dict]:
+    """The steps of :func:`seqshape.model.estimator.check_backend`: three tracks over five steps (box-like clouds of
+    0, 1, about N/2 and 3N points, empty frames, a track that starts late, timestamps known
+    and unknown, a length hint)."""
+    rng = np.random.default_rng(seed)
+
+    def cloud(n: int, x: float) -> np.ndarray:
+        return (rng.normal(size=(n, 3)) * [2.0, 0.9, 0.6] + [x, 3.0, -0.8]).astype(np.float32)
+
+    half = max(2, num_points // 2)
+    counts = [(half, 1, 0), (3 * num_points, 0, half), (0, half, 1), (half, 3 * num_points,
+                                                                      half), (1, half, 0)]
+    steps = []
+    for t, row in enumerate(counts):
+        ids = ["a", "b", "c"] if t != 3 else ["a", "b", "fresh"]
+        steps.append({"track_ids": ids,
+                      "point_lists": [cloud(n, 8.0 + 4 * i + 0.3 * t) for i, n in enumerate(row)],
+                      "timestamps": [0.1 * t, None, 0.1 * t + 0.05],
+                      "sizes": [None, None, (12.0, 2.5, 3.2)]})
+    return steps
+
+
+def make_engine(model: ShapePoseNet, name: str, threads: int | None = None):
+    """The engine of backend ``name`` (not ``"auto"`` nor ``"torch"``) for ``model``."""
+    if name == "onnx":
+        return OnnxEngine(model, threads)
+    if name == "torch-lean":
+        return TorchGraphEngine(model, threads)
+    raise ConfigError(f"unknown inference backend {name!r}; choose from {BACKENDS}")
+
+
+class _torch_threads:
+    """Context: torch's intra-op threads set to ``n`` inside, restored after (None: as is)."""
+
+    def __init__(self, n: int | None):
+        self.n, self.old = n, None
+
+    def __enter__(self):
+        if self.n is not None and torch.get_num_threads() != self.n:
+            self.old = torch.get_num_threads()
+            torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            torch.set_num_threads(self.old)
+
+
+_AUTO_CACHE: dict[tuple, str] = {}
+
+
+def model_fingerprint(model: ShapePoseNet) -> tuple:
+    """A key of ``model``'s function: kind, configuration and a checksum of its weights."""
+    crc = 0
+    for name, t in model.state_dict().items():
+        crc = zlib.crc32(name.encode(), crc)
+        crc = zlib.crc32(t.detach().contiguous().numpy().tobytes(), crc)
+    return model.kind, json.dumps(model.cfg.to_dict(), sort_keys=True), crc
+
+
+def select_backend(model: ShapePoseNet, check: Callable[[str], bool],
+                   order: tuple[str, ...] = AUTO_ORDER) -> str:
+    """The backend ``"auto"`` picks for ``model``: the first of ``order`` whose runtime is
+    installed and for which ``check(name)`` is True, else the reference ``"torch"``. Warns
+    (``RuntimeWarning``) when the first choice is passed over, saying why. Cached per process
+    and model (:func:`model_fingerprint`), so the check runs once."""
+    key = (model_fingerprint(model), order)
+    if key in _AUTO_CACHE:
+        return _AUTO_CACHE[key]
+    reasons, chosen = [], "torch"
+    for name in order:
+        try:
+            ok = check(name)
+        except MissingDependencyError:
+            reasons.append(f"{name}: runtime not installed (pip install 'seqshape[fast]')")
+            continue
+        if ok:
+            chosen = name
+            break
+        reasons.append(f"{name}: outputs differ from the reference on this machine")
+    if reasons:
+        warnings.warn(f"inference backend {chosen!r} chosen ({'; '.join(reasons)})",
+                      RuntimeWarning, stacklevel=3)
+    _AUTO_CACHE[key] = chosen
+    return chosen

@@ -1,0 +1,236 @@
+"""Inference backends against the PyTorch reference; backend selection and fallback.
+
+Tolerances (:data:`seqshape.model.engine.TOLERANCE`: 2 mm on shape points, 0.2 mm on pose
+centres, 1e-3 rad on yaw): the fast backends compute the reference's float32 arithmetic in
+another order (measured: up to 0.8 mm, 0.02 mm, 2e-4 rad); a wrong gate, scale, mean, time
+step or carried state moves them by centimetres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from seqshape.errors import ConfigError, MissingDependencyError
+from seqshape.model import Estimator, ModelConfig, ShapePoseNet
+from seqshape.model import engine as engine_module
+from seqshape.model import estimator as estimator_module
+from seqshape.model.engine import TOLERANCE, length_buckets, pack_frames
+from seqshape.model.heading import wrap_angle
+from seqshape.testing import box_surface
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnx")
+
+TOL_SHAPE, TOL_CENTRE, TOL_YAW = TOLERANCE
+FAST = ("onnx", "torch-lean")
+TINY = ModelConfig(num_points=32, encoder1=(8, 16), encoder2=(16, 24), hidden=20,
+                   shape_decoder=(32,), pose_decoder=(16,), num_complete=40)
+#: Every option the Estimator supports, each on in one configuration and all on in the last.
+OPTIONS = [{}, {"shape_frame": "canonical"}, {"frame_skip": True}, {"motion_input": True},
+           {"scale_norm": "length"}, {"view_input": True},
+           {"shape_frame": "canonical", "frame_skip": True, "motion_input": True,
+            "scale_norm": "length"}]
+
+
+@pytest.fixture(autouse=True)
+def _fresh_auto_cache(monkeypatch):
+    monkeypatch.setattr(engine_module, "_AUTO_CACHE", {})
+
+
+def _net(options: dict, recurrent: bool = True, seed: int = 0) -> ShapePoseNet:
+    torch.manual_seed(seed)
+    net = ShapePoseNet(dataclasses.replace(TINY, **options), recurrent)
+    with torch.no_grad():  # the zero-initialised extensions get weights, so they matter
+        for p in net.parameters():
+            if not p.any():
+                p.normal_(0.0, 0.3)
+        if net.motion:  # the GRU's motion columns
+            net.fusion.weight_ih[:, net.cfg.feature_size:].normal_(0.0, 0.3)
+    return net.eval()
+
+
+def _cloud(rng, n: int, pose) -> np.ndarray:
+    """A partial car view: the half of a box surface nearer the sensor, n points at most."""
+    pts = box_surface(2 * n + 2, rng, pose=pose, dtype=np.float32)
+    near = np.linalg.norm(pts[:, :2], axis=1) <= np.linalg.norm(pose[:2])
+    return pts[near][:n]
+
+
+def _stream(seed: int, n_tracks: int = 12, n_steps: int = 6, num_points: int = 32):
+    """Steps over moving tracks: empty frames, one point, many points (> N), tracks that
+    appear late, timestamps known, missing and NaN, size and class hints."""
+    rng = np.random.default_rng(seed)
+    starts = rng.uniform(6, 30, size=(n_tracks, 2)) * rng.choice([-1, 1], size=(n_tracks, 2))
+    yaws = rng.uniform(-np.pi, np.pi, size=n_tracks)
+    sizes_pool = [0, 1, 2, num_points // 2, num_points, 5 * num_points]
+    steps = []
+    for t in range(n_steps):
+        ids = [f"t{i}" for i in range(n_tracks) if t >= i % 3]
+        idx = [int(s[1:]) for s in ids]
+        pts = [_cloud(rng, sizes_pool[(i + t) % len(sizes_pool)],
+                      (*(starts[i] + 0.8 * t * np.array([np.cos(yaws[i]), np.sin(yaws[i])])),
+                       -0.9, yaws[i])) for i in idx]
+        stamps = [[0.1 * t, None, float("nan"), 0.1 * t + 0.03][i % 4] for i in idx]
+        sizes = [None if i % 2 else (13.0 if i % 4 == 0 else 4.5) for i in idx]
+        classes = [["bus", None, "car"][i % 3] for i in idx]
+        steps.append({"track_ids": ids, "point_lists": pts, "timestamps": stamps,
+                      "sizes": sizes, "classes": classes})
+    return steps
+
+
+def _assert_close(fast, ref, where: str) -> None:
+    assert [e.track_id for e in fast] == [e.track_id for e in ref]
+    for a, b in zip(fast, ref, strict=True):
+        assert a.num_points == b.num_points and a.scale == pytest.approx(b.scale, abs=0)
+        assert a.complete.shape == b.complete.shape and a.complete.dtype == b.complete.dtype
+        assert a.pose.dtype == b.pose.dtype and a.flipped == b.flipped
+        err = np.abs(a.complete - b.complete).max()
+        assert err <= TOL_SHAPE, f"{where} {a.track_id}: shape differs by {err:.2e} m"
+        err = np.abs(a.pose[:3] - b.pose[:3]).max()
+        assert err <= TOL_CENTRE, f"{where} {a.track_id}: centre differs by {err:.2e} m"
+        err = abs(wrap_angle(a.pose[3] - b.pose[3]))
+        assert err <= TOL_YAW, f"{where} {a.track_id}: yaw differs by {err:.2e} rad"
+
+
+def _compare(net: ShapePoseNet, backend: str, steps, resets=(3,)) -> None:
+    fast, ref = Estimator(net, backend=backend), Estimator(net, backend="torch")
+    for t, step in enumerate(steps):
+        if t in resets:
+            for est in (fast, ref):
+                est.reset(step["track_ids"][0])
+        _assert_close(fast.step(**step), ref.step(**step), f"{backend} step {t}")
+
+
+@pytest.mark.parametrize(("options", "recurrent"),
+                         [(o, True) for o in OPTIONS] + [(OPTIONS[-1], False), ({}, False)])
+@pytest.mark.parametrize("backend", FAST)
+def test_fast_backends_match_the_reference(backend, options, recurrent):
+    _compare(_net(options, recurrent), backend, _stream(len(str(options))))
+
+
+@pytest.mark.parametrize("kind", ["sequential", "baseline"])
+def test_shipped_weights_on_real_looking_tracks(kind):
+    """The shipped network, 40 tracks of partial car views (so the batch splits into
+    point-count groups), a reset, an empty frame for every track."""
+    net = Estimator.load(kind, backend="torch").model
+    steps = _stream(7, n_tracks=40, n_steps=4, num_points=net.cfg.num_points)
+    steps.append({**steps[-1], "point_lists": [np.zeros((0, 3), np.float32)] * 40})
+    _compare(net, "onnx", steps, resets=(2,))
+
+
+def test_empty_frames_are_not_recomputed_and_keep_the_estimate(monkeypatch):
+    net = _net({"motion_input": True, "scale_norm": "length"})
+    est, ref = Estimator(net, backend="onnx"), Estimator(net, backend="torch")
+    rows = []
+    run = est._engine.run
+    monkeypatch.setattr(est._engine, "run", lambda inputs: rows.append(len(inputs.lengths))
+                        or run(inputs))
+    rng = np.random.default_rng(0)
+    ids = ["a", "b", "c"]
+    full = [_cloud(rng, 20, (10.0 + 5 * i, 2.0, -0.9, 0.3)) for i in range(3)]
+    empty = np.zeros((0, 3), np.float32)
+    first = est.step(ids, full)
+    ref.step(ids, full)
+    carried = est.step(ids, [empty, full[1], empty])
+    _assert_close(carried, ref.step(ids, [empty, full[1], empty]), "carried")
+    assert rows == [3, 1]  # only the track with points went through the network
+    for i in (0, 2):
+        np.testing.assert_array_equal(carried[i].complete, first[i].complete)
+        np.testing.assert_array_equal(carried[i].pose, first[i].pose)
+        assert carried[i].complete is not first[i].complete  # a copy, not the cached array
+    est.step(ids, [empty] * 3, sizes=[None, None, 20.0])  # a new scale: recomputed
+    ref.step(ids, [empty] * 3, sizes=[None, None, 20.0])
+    assert rows == [3, 1, 1]
+    # the time since the last detection grew through the skipped steps, as in the reference
+    later = [f + 0.5 for f in full]
+    _assert_close(est.step(ids, later, timestamps=[1.0, 1.0, None]),
+                  ref.step(ids, later, timestamps=[1.0, 1.0, None]), "after gap")
+
+
+def test_auto_picks_the_first_backend_that_passes(monkeypatch):
+    calls = []
+    real = estimator_module.check_backend
+
+    def spy(fast):
+        calls.append(fast.backend)
+        return real(fast)
+
+    monkeypatch.setattr(estimator_module, "check_backend", spy)
+    net = _net({})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the first choice passes: no warning
+        assert Estimator(net, backend="auto").backend == "onnx"
+        assert Estimator(net, backend="auto").backend == "onnx"
+    assert calls == ["onnx"]  # checked once per process and model
+    Estimator(_net({}, seed=1), backend="auto")  # other weights: checked again
+    assert calls == ["onnx", "onnx"]
+
+
+def test_auto_falls_back_with_a_warning_when_the_runtime_is_missing(monkeypatch):
+    def missing(module, feature, pip_name=None):
+        raise MissingDependencyError(f"{feature} needs the optional package '{pip_name}'")
+
+    monkeypatch.setattr(engine_module, "require", missing)
+    net = _net({"frame_skip": True})
+    with pytest.warns(RuntimeWarning, match="onnx: runtime not installed.*seqshape\\[fast\\]"):
+        est = Estimator(net, backend="auto")
+    assert est.backend == "torch-lean"
+    with pytest.raises(MissingDependencyError, match="seqshape\\[fast\\]"):
+        Estimator(net, backend="onnx")
+    monkeypatch.setattr(estimator_module, "check_backend", lambda fast: False)
+    with pytest.warns(RuntimeWarning, match="'torch' chosen.*differ from the reference"):
+        assert Estimator(_net({}, seed=2), backend="auto").backend == "torch"
+
+
+def test_loaders_default_to_auto_and_check_arguments(tmp_path):
+    from seqshape.train.checkpoint import model_payload, save_payload
+
+    path = tmp_path / "model.pt"
+    save_payload(path, model_payload(_net({}), {}, {}))
+    assert Estimator.load(path).backend == "onnx"
+    assert Estimator.from_checkpoint(path, backend="torch-lean").backend == "torch-lean"
+    assert Estimator(_net({})).backend == "torch"  # a model object: the reference
+    with pytest.raises(ConfigError, match="unknown inference backend 'tensorrt'"):
+        Estimator.load(path, backend="tensorrt")
+    with pytest.raises(ConfigError, match="threads must be >= 1"):
+        Estimator(_net({}), threads=0, backend="onnx")
+
+
+def test_torch_lean_threads_apply_to_its_steps_only():
+    before = torch.get_num_threads()
+    est = Estimator(_net({}), backend="torch-lean", threads=1)
+    seen = []
+    forward = est._engine.graph.forward
+    est._engine.graph.forward = lambda *a: seen.append(torch.get_num_threads()) or forward(*a)
+    est.step(["a"], [np.ones((4, 3), np.float32)])
+    assert seen == [1] and torch.get_num_threads() == before
+
+
+def test_length_buckets_cover_every_row_once_with_little_padding():
+    rng = np.random.default_rng(0)
+    for n, fill, min_rows in itertools.product((1, 7, 100), (0.5, 0.75), (1, 16)):
+        lengths = rng.integers(0, 257, size=n)
+        groups = length_buckets(lengths, fill, min_rows)
+        assert sorted(np.concatenate(groups).tolist()) == list(range(n))
+        for g in groups[:-1]:  # all but the remainder group: within the fill bound
+            assert len(g) >= min_rows
+            if len(g) > min_rows:
+                assert lengths[g].min() >= fill * lengths[g].max() - 1e-9
+
+
+def test_pack_frames_repeats_rows_cyclically_and_reuses_its_buffer():
+    frames = [np.arange(9, dtype=np.float32).reshape(3, 3), np.zeros((0, 3), np.float32),
+              np.ones((5, 3), np.float32)]
+    batch, buf = pack_frames(frames, np.zeros(0, np.float32))
+    assert batch.shape == (3, 5, 3) and batch.flags.c_contiguous
+    np.testing.assert_array_equal(batch[0], np.resize(frames[0], (5, 3)))
+    assert not batch[1].any()
+    again, buf2 = pack_frames(frames[:1], buf)
+    assert buf2 is buf and np.shares_memory(again, buf)
+    np.testing.assert_array_equal(again[0], frames[0])
