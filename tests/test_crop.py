@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from seqshape.data.crop import CropConfig, crop_vehicle, local_ground
+from seqshape.data.crop import (
+    CropConfig,
+    SweepIndex,
+    crop_vehicle,
+    crop_vehicles,
+    local_ground,
+)
 from seqshape.errors import ConfigError
 from seqshape.geometry import canonical_to_sensor
 
@@ -91,3 +97,71 @@ def test_margin_is_per_side_and_deterministic():
     out = crop_vehicle(sweep, POSE, SIZE)  # margin 0.2 in x/y, 0.1 in z
     assert len(out) == 2
     np.testing.assert_array_equal(out, crop_vehicle(sweep, POSE, SIZE))
+
+
+def _street(seed: int, n_boxes: int = 12):
+    """A float32 (N, 4) sweep of a road with ``n_boxes`` vehicles, their poses and sizes
+    (some far from every point, some overlapping), plus points exactly on the squares the
+    crop scans (``|x - cx| == reach``)."""
+    rng = np.random.default_rng(seed)
+    poses = np.c_[rng.uniform(-30, 30, (n_boxes, 2)), rng.uniform(-1.2, -0.8, n_boxes),
+                  rng.uniform(-np.pi, np.pi, n_boxes)]
+    poses[0, :2] = [500.0, -500.0]  # nothing near it
+    poses[1] = poses[2] + [1.0, 0.5, 0.0, 0.3]  # overlapping boxes
+    sizes = np.c_[rng.uniform(3.5, 12, n_boxes), rng.uniform(1.6, 2.6, n_boxes),
+                  rng.uniform(1.4, 3.5, n_boxes)]
+    parts = [np.c_[rng.uniform(-45, 45, (20000, 2)), -1.75 + rng.normal(0, 0.02, 20000)]]
+    for pose, size in zip(poses, sizes, strict=True):
+        body = rng.uniform(-0.55, 0.55, (300, 3)) * size
+        parts.append(canonical_to_sensor(body, pose))
+        reach = float(np.hypot(size[0] / 2, size[1] / 2)) + 2.0
+        parts.append(np.c_[pose[0] + reach * np.array([1, -1, 1, -1]),
+                           pose[1] + reach * np.array([1, 1, -1, -1]), np.full(4, -1.0)])
+    pts = np.vstack(parts)
+    return np.c_[pts, rng.random(len(pts))].astype(np.float32), poses, sizes
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_crop_vehicles_equals_crop_vehicle_box_by_box(seed):
+    sweep, poses, sizes = _street(seed)
+    plane = (np.array([0.0, 0.0, 1.0]), 1.75)
+    for cfg in (CropConfig(), CropConfig(ground="box"), CropConfig(ground="none", margin=0.5),
+                CropConfig(context=0.0, min_ground_points=5)):
+        got = crop_vehicles(sweep, poses, sizes, cfg, sweep_plane=plane)
+        assert len(got) == len(poses)
+        for out, pose, size in zip(got, poses, sizes, strict=True):
+            want = crop_vehicle(sweep, pose, size, cfg, sweep_plane=plane)
+            assert out.dtype == np.float32 and out.shape == want.shape
+            np.testing.assert_array_equal(out, want)  # the same points in the same order
+    assert sum(len(c) for c in got) > 1000
+
+
+def test_crop_vehicles_other_dtypes_non_finite_points_and_empty_input():
+    sweep, poses, sizes = _street(4, n_boxes=6)
+    bad = sweep.copy()
+    bad[::97, 0] = np.nan
+    bad[::89, 1] = np.inf
+    for pts in (sweep.astype(np.float64), bad, np.round(sweep * 10).astype(np.int32)):
+        got = crop_vehicles(pts, poses, sizes)
+        for out, pose, size in zip(got, poses, sizes, strict=True):
+            np.testing.assert_array_equal(out, crop_vehicle(pts, pose, size))
+    assert crop_vehicles(sweep, np.zeros((0, 4)), np.zeros((0, 3))) == []
+    empty = crop_vehicles(np.zeros((0, 4), np.float32), poses, sizes)
+    assert [c.shape for c in empty] == [(0, 3)] * len(poses)
+    nowhere = np.full((5, 4), np.nan, np.float32)
+    assert all(len(c) == 0 for c in crop_vehicles(nowhere, poses, sizes))
+
+
+def test_sweep_index_rows_hold_every_point_of_the_squares():
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-80, 80, (30000, 3)).astype(np.float32)
+    index = SweepIndex(pts, cell=3.0)
+    centres, reaches = rng.uniform(-90, 90, (40, 2)), rng.uniform(0.5, 9.0, 40)
+    rows = index.rows(centres, reaches)
+    assert np.all(np.diff(rows) > 0) and len(rows) < len(pts)
+    inside = np.zeros(len(pts), dtype=bool)
+    for c, r in zip(centres, reaches, strict=True):
+        inside |= np.all(np.abs(pts[:, :2] - c) <= r, axis=1)
+    assert set(np.flatnonzero(inside)) <= set(rows)
+    wide = SweepIndex(np.array([[0.0, 0.0, 0.0], [1e5, 1e5, 0.0]]), max_cells=100)
+    assert wide.cell == 1000.0 and list(wide.rows([[1e5, 1e5]], [1.0])) == [1]

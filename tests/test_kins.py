@@ -2,6 +2,7 @@ import json
 
 import numpy as np
 import pytest
+from pycocotools import mask as coco_mask
 
 from seqshape.data.kins import (
     KINS_CATEGORIES,
@@ -246,3 +247,68 @@ def test_occlusion_order_exact_relation_overrides_depth():
     cycle = np.zeros((3, 3), bool)
     cycle[0, 1] = cycle[1, 2] = cycle[2, 0] = True
     assert occlusion_order([1.0, 2.0, 3.0], wide, hides=cycle) == ([1, 1, 1], [1, 2, 3])
+
+
+def _reference_rle(mask) -> dict:
+    """The former mask_to_rle: pycocotools on a Fortran copy of the whole mask."""
+    mask = np.asarray(mask)
+    data = mask.view(np.uint8) if mask.dtype == bool else mask.astype(np.uint8)
+    rle = coco_mask.encode(np.asfortranarray(data))
+    return {"size": [int(rle["size"][0]), int(rle["size"][1])],
+            "counts": rle["counts"].decode("ascii")}
+
+
+def _masks(seed: int):
+    """Masks of every kind: random small ones (runs through the bottom row into the next
+    column, full columns, full, empty), blobs in a KITTI-size image, at its borders."""
+    rng = np.random.default_rng(seed)
+    for k in range(400):
+        h, w = (int(v) for v in rng.integers(1, 9, 2))
+        m = rng.random((h, w)) < rng.random()
+        if k % 9 == 0:
+            m[:] = k % 2 == 0
+        if k % 5 == 0:
+            m[:, rng.integers(0, w)] = True
+        yield m
+    for r0, r1, c0, c1 in [(0, 375, 0, 30), (300, 375, 1200, 1242), (0, 1, 0, 1242),
+                           (120, 240, 500, 640), (374, 375, 1241, 1242)]:
+        m = np.zeros((375, 1242), dtype=bool)
+        m[r0:r1, c0:c1] = rng.random((r1 - r0, c1 - c0)) < 0.97
+        yield m
+        yield np.asfortranarray(m)
+        yield m[::-1, ::-1]  # not contiguous
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rle_from_the_bounding_box_is_byte_identical(seed):
+    for m in _masks(seed):
+        assert mask_to_rle(m) == _reference_rle(m)
+
+
+def test_rle_of_other_dtypes_is_byte_identical():
+    rng = np.random.default_rng(2)
+    for dtype in (np.uint8, np.int64, np.float32):
+        for vmax in (1, 2):
+            m = rng.integers(0, vmax + 1, (6, 7)).astype(dtype)
+            assert mask_to_rle(m) == _reference_rle(m)
+    assert mask_to_rle(np.zeros((0, 3), np.uint8)) == _reference_rle(np.zeros((0, 3), np.uint8))
+    with pytest.raises(ValueError):
+        mask_to_rle(np.zeros((2, 2, 2), bool))
+
+
+def test_annotations_equal_the_whole_mask_composition():
+    masks = list(_masks(3))
+    for a, v in zip(masks[::2], masks[1::2], strict=False):
+        if a.shape != v.shape:
+            continue
+        ann = kins_annotation(1, 2, 1, a, v & a, 1, 2, track_id=5)
+        for key, m in (("a", a), ("i", v & a)):
+            assert ann[f"{key}_segm"] == _reference_rle(m)
+            assert ann[f"{key}_bbox"] == bbox_of_mask(m)
+            assert ann[f"{key}_area"] == int(np.count_nonzero(m))
+        coco = coco_annotation(1, 2, 1, a, score=0.5)
+        assert (coco["segmentation"], coco["bbox"], coco["area"]) == (
+            _reference_rle(a), bbox_of_mask(a), int(np.count_nonzero(a)))
+    poly = kins_annotation(1, 1, 1, masks[-3], masks[-3], 0, 0, polygons=True)
+    assert poly["a_segm"] == mask_to_polygons(masks[-3])
+    assert poly["a_area"] == int(masks[-3].sum())

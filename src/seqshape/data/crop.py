@@ -3,7 +3,8 @@
 :func:`crop_vehicle` is the single preprocessing step between a sweep and the estimator. Track
 extraction (``seqshape tracks``), the labeller (``seqshape label``) and the training data path
 call this one function, so what the network is trained on and what it sees at inference are
-cut the same way:
+cut the same way (:func:`crop_vehicles`: every box of one sweep at once, crop for crop the
+same, the sweep bucketed once by :class:`SweepIndex`):
 
 1. the sweep points inside the box enlarged by ``margin`` metres on each side (length and
    width; the height too, by ``margin_z``);
@@ -62,14 +63,76 @@ class CropConfig:
         return asdict(self)
 
 
+def _reach(size, reach_extra: float) -> float:
+    """Half the side of the square (x, y) around a box that :func:`_surroundings` scans."""
+    return float(np.hypot(size[0] / 2, size[1] / 2)) + reach_extra
+
+
 def _surroundings(points: np.ndarray, pose, size, reach_extra: float):
     """The points within the box's bounding circle grown by ``reach_extra`` (x, y), as float64
     in the sensor frame and in the box's own frame: ``(near (K, 3), local (K, 3))``."""
-    reach = float(np.hypot(size[0] / 2, size[1] / 2)) + reach_extra
+    reach = _reach(size, reach_extra)
     idx = np.flatnonzero((np.abs(points[:, 0] - pose[0]) <= reach)
                          & (np.abs(points[:, 1] - pose[1]) <= reach))
     near = points[idx].astype(np.float64)
     return near, sensor_to_canonical(near, pose)
+
+
+class SweepIndex:
+    """The points of a sweep bucketed on a coarse (x, y) grid, so that cropping many boxes
+    scans the sweep once (:func:`crop_vehicles`) instead of once per box.
+
+    :meth:`rows` gives, for squares around boxes, the sorted indices of the points in the grid
+    cells those squares touch: a superset of the points in the squares (each square is widened
+    by ``slack`` metres against rounding), on which the exact test then runs. Points with a
+    non-finite x or y are in no cell (the exact test never keeps them either). The cells are
+    ``cell`` metres wide, wider when the sweep spans more than ``max_cells`` cells a side.
+    """
+
+    def __init__(self, points: np.ndarray, cell: float = 4.0, slack: float = 0.01,
+                 max_cells: int = 2048):
+        pts = np.asarray(points)
+        self.dtype = pts.dtype if pts.dtype.kind == "f" else np.dtype(np.float64)
+        x, y = pts[:, 0].astype(self.dtype, copy=False), pts[:, 1].astype(self.dtype, copy=False)
+        finite = None
+        bounds = np.array([x.min(), y.min(), x.max(), y.max()]) if len(x) else np.zeros(4)
+        if not np.isfinite(bounds).all():  # rare: bound and bucket the finite points only
+            finite = np.isfinite(x) & np.isfinite(y)
+            x, y = np.where(finite, x, 0), np.where(finite, y, 0)
+            bounds = (np.array([x[finite].min(), y[finite].min(), x[finite].max(),
+                                y[finite].max()]) if finite.any() else np.zeros(4))
+        self.lo = bounds[:2].astype(self.dtype)
+        span = float(max(bounds[2] - bounds[0], bounds[3] - bounds[1]))
+        self.cell = self.dtype.type(max(float(cell), span / max_cells))
+        self.slack = float(slack)
+        self.shape = self._cells(bounds[2:].astype(self.dtype)[None])[0] + 1
+        n = int(self.shape[0] * self.shape[1])
+        # x - lo >= 0 for every point, so truncation is the floor of _cells
+        keys = ((x - self.lo[0]) / self.cell).astype(np.int64)
+        keys *= self.shape[1]
+        keys += ((y - self.lo[1]) / self.cell).astype(np.int64)
+        self.keys = keys if finite is None else np.where(finite, keys, n)  # n: in no cell
+
+    def _cells(self, xy: np.ndarray) -> np.ndarray:
+        """Grid cells ``(K, 2)`` of points ``(K, 2)`` (the operations of the points' keys, in
+        the same dtype, so monotone: a point of a square lies between its corners' cells)."""
+        return np.floor((xy.astype(self.dtype, copy=False) - self.lo) / self.cell).astype(
+            np.int64)
+
+    def rows(self, centres, reaches) -> np.ndarray:
+        """Sorted indices of the points in the cells touched by the squares
+        ``|x - cx| <= reach, |y - cy| <= reach`` (``centres (B, 2)``, ``reaches (B,)``)."""
+        n0, n1 = int(self.shape[0]), int(self.shape[1])
+        wanted = np.zeros(n0 * n1 + 1, dtype=bool)  # the last entry: points in no cell
+        c = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        half = (np.asarray(reaches, dtype=np.float64).reshape(-1) + self.slack)[:, None]
+        lo = np.maximum(self._cells(c - half), 0)
+        hi = np.minimum(self._cells(c + half), [n0 - 1, n1 - 1])
+        grid = wanted[:-1].reshape(n0, n1)
+        for (i0, j0), (i1, j1) in zip(lo, hi, strict=True):
+            if i0 <= i1 and j0 <= j1:
+                grid[i0:i1 + 1, j0:j1 + 1] = True
+        return np.flatnonzero(wanted[self.keys])
 
 
 def _ground_from(near: np.ndarray, local: np.ndarray, size: np.ndarray, cfg: CropConfig):
@@ -112,12 +175,41 @@ def crop_vehicle(points, pose, size, cfg: CropConfig = CropConfig(),
 
     ``sweep_plane``: the sweep's ground plane ``(n, d)`` (or a function returning it, called
     only when needed), used where the local fit fails. The sweep is scanned and transformed
-    into the box frame once, for the crop and the ground fit together.
+    into the box frame once, for the crop and the ground fit together. Many boxes of one
+    sweep: :func:`crop_vehicles` (the same crops, the sweep scanned once for all).
     """
+    return _crop_one(np.asarray(points)[:, :3], pose, size, cfg, sweep_plane)
+
+
+def crop_vehicles(points, poses, sizes, cfg: CropConfig = CropConfig(),
+                  sweep_plane=None) -> list[np.ndarray]:
+    """:func:`crop_vehicle` of every box ``poses[i], sizes[i]`` of one sweep, equal to it crop
+    by crop, point by point: the sweep is bucketed once (:class:`SweepIndex`) and each box
+    tests only the points of the grid cells around it."""
+    pts = np.asarray(points)[:, :3]
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+    sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
+    if len(poses) == 0:
+        return []
+    extra = _reach_extra(cfg)
+    reaches = np.array([_reach(s, extra) for s in sizes])
+    # the points that can be near any box, in sweep order: each box finds the same points in
+    # the same order among them as in the whole sweep
+    near = pts[SweepIndex(pts).rows(poses[:, :2], reaches)]
+    return [_crop_one(near, p, s, cfg, sweep_plane) for p, s in zip(poses, sizes, strict=True)]
+
+
+def _reach_extra(cfg: CropConfig) -> float:
+    """How far beyond the box's bounding circle the crop looks (the ground fit's context)."""
+    return max(cfg.margin, cfg.context) if cfg.ground == "plane" else cfg.margin
+
+
+def _crop_one(pts: np.ndarray, pose, size, cfg: CropConfig, sweep_plane) -> np.ndarray:
+    """:func:`crop_vehicle` on the sweep points ``pts (N, 3)`` (or those of them that can be
+    near the box, in sweep order)."""
     pose = np.asarray(pose, dtype=np.float64)
     size = np.asarray(size, dtype=np.float64)
-    reach = max(cfg.margin, cfg.context) if cfg.ground == "plane" else cfg.margin
-    near, local = _surroundings(np.asarray(points)[:, :3], pose, size, reach)
+    near, local = _surroundings(pts, pose, size, _reach_extra(cfg))
     half = size / 2 + [cfg.margin, cfg.margin, cfg.margin_z]
     inbox = np.all(np.abs(local) <= half, axis=1)
     cand = near[inbox]

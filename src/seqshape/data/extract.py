@@ -2,7 +2,8 @@
 
 :func:`extract_tracks` takes a :class:`~seqshape.data.sequence.DrivingLog` and returns one
 :class:`~seqshape.data.Track` per annotated vehicle track, its frames in log order, cut out
-of each sweep by :func:`seqshape.data.crop.crop_vehicle`. The ``meta`` schema of such a track
+of each sweep by :func:`seqshape.data.crop.crop_vehicle` (all boxes of a sweep at once,
+:func:`~seqshape.data.crop.crop_vehicles`). The ``meta`` schema of such a track
 (docs/data-format.md, "Real tracks"):
 
 ====================  ==========================================================
@@ -38,7 +39,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from seqshape.data.crop import CropConfig, crop_vehicle
+from seqshape.data.crop import CropConfig, crop_vehicles
 from seqshape.data.ground import ground_plane
 from seqshape.data.sequence import VEHICLE_CLASSES, DrivingLog
 from seqshape.data.track import Track
@@ -84,8 +85,9 @@ def extract_tracks(log: DrivingLog, classes: Iterable[str] | None = None,
             continue
         sweep = np.asarray(log.points(frame))
         plane = _SweepPlane(sweep)
-        for b in boxes:
-            pts = crop_vehicle(sweep, b.pose, b.size, crop, sweep_plane=plane.get)
+        cuts = crop_vehicles(sweep, [b.pose for b in boxes], [b.size for b in boxes], crop,
+                             sweep_plane=plane.get)
+        for b, pts in zip(boxes, cuts, strict=True):
             rows.setdefault(b.track_id, []).append((frame, pts, b))
     tracks = []
     for oid in sorted(rows):

@@ -27,17 +27,44 @@ def _fit_plane(p: np.ndarray) -> tuple[np.ndarray, float]:
     return n, float(-n @ c)
 
 
+def _triples(rng, m: int, iterations: int) -> np.ndarray:
+    """``(iterations, 3)`` indices into ``m`` points: exactly the draws of ``iterations`` calls
+    of ``rng.choice(m, 3, replace=False)`` (what this module did), made by one call.
+
+    For three of ``m`` without replacement numpy's ``Generator.choice`` runs Floyd's algorithm
+    (bounded integers in ``[0, m - 3]``, ``[0, m - 2]``, ``[0, m - 1]``; a repeat is replaced
+    by the bound) and then shuffles the three (bounded integers in ``[0, 2]``, ``[0, 1]``), each
+    draw one bounded integer of the same generator; ``rng.integers`` with those five bounds per
+    triple draws the same integers in the same order. tests/test_ground.py checks the equality
+    against the calls themselves.
+    """
+    bounds = np.tile(np.array([m - 3, m - 2, m - 1, 2, 1], dtype=np.int64), iterations)
+    d = rng.integers(0, bounds, endpoint=True).reshape(iterations, 5)
+    first = d[:, 0]
+    second = np.where(d[:, 1] == first, m - 2, d[:, 1])
+    third = np.where((d[:, 2] == first) | (d[:, 2] == second), m - 1, d[:, 2])
+    idx = np.stack([first, second, third], axis=1)
+    r = np.arange(iterations)
+    for pos, col in ((2, 3), (1, 4)):  # the shuffle: swap idx[pos] with idx[draw]
+        j = d[:, col]
+        picked = idx[r, j]
+        idx[r, j] = idx[:, pos]
+        idx[:, pos] = picked
+    return idx
+
+
 def _ransac_plane(cand: np.ndarray, rng, iterations: int, threshold: float,
                   max_tilt_deg: float) -> tuple[tuple[np.ndarray, float] | None, int]:
     """The best of ``iterations`` 3-point plane hypotheses on ``cand (M, 3)``: ``((n, d), count)``.
 
     Hypotheses tilted more than ``max_tilt_deg`` or degenerate are skipped; the first one with
     the most points within ``threshold`` wins (``(None, 0)`` when none is valid). All triples
-    are drawn first (the same draws, in the same order, as one at a time) and scored at once.
+    are drawn first (the same draws, in the same order, as one at a time: :func:`_triples`)
+    and scored at once.
     """
     if len(cand) < 3 or iterations < 1:
         return None, 0
-    tri = cand[np.stack([rng.choice(len(cand), 3, replace=False) for _ in range(iterations)])]
+    tri = cand[_triples(rng, len(cand), iterations)]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (I, 3)
     norm = np.linalg.norm(n, axis=1)
     ok = (norm >= 1e-9) & (np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * norm)
@@ -45,7 +72,10 @@ def _ransac_plane(cand: np.ndarray, rng, iterations: int, threshold: float,
         return None, 0
     n, tri = n[ok] / norm[ok, None] * np.sign(n[ok, 2])[:, None], tri[ok]
     offs = np.einsum("ij,ij->i", n, tri[:, 0])  # (I',)
-    counts = np.count_nonzero(np.abs(cand @ n.T - offs) < threshold, axis=0)  # (I',)
+    dist = cand @ n.T  # (M, I'): the same products as ever; the rest in place
+    dist -= offs
+    np.abs(dist, out=dist)
+    counts = np.add.reduce(np.less(dist, threshold).view(np.uint8), axis=0, dtype=np.int64)
     i = int(np.argmax(counts))
     if counts[i] <= 0:
         return None, 0
@@ -57,15 +87,18 @@ def ground_plane(points, threshold: float = 0.2, sensor_height: float = 1.73,
                  seed: int = 0, max_candidates: int = 5000) -> tuple[np.ndarray, float]:
     """The ground plane ``n . x + d = 0`` (unit ``n``, ``n_z > 0``) of ``(N, 3)`` sensor-frame
     points (module doc); the flat plane ``z = -sensor_height`` when none is found."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    points = np.asarray(points).reshape(-1, 3)
     flat = (np.array([0.0, 0.0, 1.0]), float(sensor_height))
     if len(points) == 0:
         return flat
-    z_lo = np.quantile(points[:, 2], low_quantile) + 0.5
-    cand = points[points[:, 2] <= z_lo]
+    # only the heights and the chosen candidates are converted to float64: the same values
+    z = points[:, 2].astype(np.float64)
+    z_lo = np.quantile(z, low_quantile) + 0.5
+    rows = np.flatnonzero(z <= z_lo)
     rng = np.random.default_rng(seed)
-    if len(cand) > max_candidates:  # plane hypotheses are scored on a random subset
-        cand = cand[rng.choice(len(cand), max_candidates, replace=False)]
+    if len(rows) > max_candidates:  # plane hypotheses are scored on a random subset
+        rows = rows[rng.choice(len(rows), max_candidates, replace=False)]
+    cand = points[rows].astype(np.float64)
     best, best_count = _ransac_plane(cand, rng, iterations, threshold, max_tilt_deg)
     if best is None or best_count < 3:
         log.debug("ground: no plane found, flat plane at z = %.2f", -sensor_height)

@@ -78,6 +78,9 @@ def _mask_api():
 def mask_to_rle(mask) -> dict:
     """COCO compressed RLE ``{"size": [H, W], "counts": str}`` of a boolean (H, W) mask.
 
+    The same string as ``pycocotools.mask.encode`` of the whole mask in column-major order
+    (a mask of other values: of the mask as uint8), made from the mask's bounding box only.
+
     >>> m = np.zeros((3, 4), dtype=bool); m[1, 1:3] = True
     >>> rle = mask_to_rle(m); rle["size"], bool((rle_to_mask(rle) == m).all())
     ([3, 4], True)
@@ -85,11 +88,64 @@ def mask_to_rle(mask) -> dict:
     mask = np.asarray(mask)
     if mask.ndim != 2:
         raise ValueError(f"mask must be 2-D (H, W), got shape {mask.shape}")
-    # bool and uint8 share the item size: view instead of a converted copy
-    data = mask.view(np.uint8) if mask.dtype == bool else mask.astype(np.uint8)
-    rle = _mask_api().encode(np.asfortranarray(data))
-    return {"size": [int(rle["size"][0]), int(rle["size"][1])],
-            "counts": rle["counts"].decode("ascii")}
+    binary = _binary(mask)
+    if binary is None:  # values other than 0 and 1: pycocotools on the whole mask as before
+        rle = _mask_api().encode(np.asfortranarray(mask.astype(np.uint8)))
+        return {"size": [int(rle["size"][0]), int(rle["size"][1])],
+                "counts": rle["counts"].decode("ascii")}
+    return _rle_from_box(binary, _mask_box(binary))
+
+
+def _binary(mask: np.ndarray) -> np.ndarray | None:
+    """``mask`` as bool when it is bool or its uint8 conversion holds only 0 and 1, else None."""
+    if mask.dtype == bool:
+        return mask
+    data = mask.astype(np.uint8)
+    return data.view(bool) if data.size == 0 or int(data.max()) <= 1 else None
+
+
+def _mask_box(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """``(r0, r1, c0, c1)``, the half-open rows and columns of a boolean mask's true pixels,
+    or None when it has none."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask[rows[0]:rows[-1] + 1].any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def _box_runs(crop: np.ndarray | None, box, height: int, width: int) -> np.ndarray:
+    """The uncompressed COCO RLE counts (alternating runs of zeros and ones from a run of
+    zeros, column-major; no trailing empty run) of the ``height x width`` boolean mask that is
+    ``crop`` inside ``box`` (:func:`_mask_box`) and false elsewhere."""
+    total = height * width
+    if box is None:
+        return np.array([total], dtype=np.uint64)
+    r0, r1, c0, c1 = box
+    cols = np.zeros((c1 - c0, r1 - r0 + 2), dtype=np.int8)  # each column, a zero above, below
+    cols[:, 1:-1] = crop.T
+    step = np.diff(cols, axis=1)  # +1 where a run of ones starts, -1 where it ends
+    sj, si = np.nonzero(step == 1)  # column-major order of the whole mask
+    ej, ei = np.nonzero(step == -1)
+    starts = (c0 + sj) * height + r0 + si
+    ends = (c0 + ej) * height + r0 + ei
+    joined = starts[1:] == ends[:-1]  # a run through the bottom row into the next column's top
+    starts, ends = starts[np.r_[True, ~joined]], ends[np.r_[~joined, True]]
+    runs = np.empty(2 * len(starts) + 1, dtype=np.int64)
+    runs[0] = starts[0]
+    runs[1::2] = ends - starts
+    runs[2:-1:2] = starts[1:] - ends[:-1]
+    runs[-1] = total - ends[-1]
+    return (runs if runs[-1] else runs[:-1]).astype(np.uint64)
+
+
+def _rle_from_box(mask: np.ndarray, box) -> dict:
+    """:func:`mask_to_rle` of the boolean ``mask`` whose :func:`_mask_box` is ``box``."""
+    h, w = (int(v) for v in mask.shape)
+    crop = None if box is None else mask[box[0]:box[1], box[2]:box[3]]
+    runs = _box_runs(crop, box, h, w)
+    rle = _mask_api().frPyObjects({"size": [h, w], "counts": runs.tolist()}, h, w)
+    return {"size": [h, w], "counts": rle["counts"].decode("ascii")}
 
 
 def rle_to_mask(rle: dict) -> np.ndarray:
@@ -183,10 +239,7 @@ def bbox_of_mask(mask) -> list[float]:
 def _mask_overlaps(masks: Sequence[np.ndarray]) -> np.ndarray:
     """``(K, K)`` bool: do masks i and j share a pixel (compared inside their common box)."""
     k = len(masks)
-    boxes = []
-    for m in masks:
-        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
-        boxes.append((rows[0], rows[-1] + 1, cols[0], cols[-1] + 1) if len(rows) else None)
+    boxes = [_mask_box(m) for m in masks]
     out = np.zeros((k, k), dtype=bool)
     for i in range(k):
         for j in range(i + 1, k):
@@ -281,24 +334,39 @@ def kins_annotation(ann_id: int, image_id: int, category_id: int, amodal_mask, v
     v = np.asarray(visible_mask, dtype=bool)
     if a.shape != v.shape:
         raise ValueError(f"amodal mask {a.shape} and visible mask {v.shape} differ in size")
+    a_segm, a_bbox, a_area = _described(a, polygons)
+    i_segm, i_bbox, i_area = _described(v, polygons)
     ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
-           "a_segm": encode_segm(a, polygons), "i_segm": encode_segm(v, polygons),
-           "a_bbox": bbox_of_mask(a), "i_bbox": bbox_of_mask(v),
-           "a_area": int(np.count_nonzero(a)), "i_area": int(np.count_nonzero(v)),
+           "a_segm": a_segm, "i_segm": i_segm, "a_bbox": a_bbox, "i_bbox": i_bbox,
+           "a_area": a_area, "i_area": i_area,
            "oco_id": int(oco_id), "ico_id": int(ico_id), "iscrowd": 0}
     if track_id is not None:
         ann["track_id"] = int(track_id)
     return ann
 
 
+def _described(mask: np.ndarray, polygons: bool) -> tuple[Any, list[float], int]:
+    """``(segmentation, bbox, area)`` of a boolean (H, W) mask: :func:`encode_segm`,
+    :func:`bbox_of_mask` and its pixel count, from one search for its bounding box."""
+    if mask.ndim != 2:
+        raise ValueError(f"mask must be 2-D (H, W), got shape {mask.shape}")
+    box = _mask_box(mask)
+    segm = mask_to_polygons(mask) if polygons else _rle_from_box(mask, box)
+    if box is None:
+        return segm, [0.0, 0.0, 0.0, 0.0], 0
+    r0, r1, c0, c1 = box
+    area = int(np.count_nonzero(mask[r0:r1, c0:c1]))
+    return segm, [float(c0), float(r0), float(c1 - c0), float(r1 - r0)], area
+
+
 def coco_annotation(ann_id: int, image_id: int, category_id: int, mask, score: float = 1.0,
                     track_id: int | None = None, polygons: bool = False) -> dict:
     """One COCO instance annotation dict from a boolean (H, W) mask (``segmentation`` RLE, or
     polygons with ``polygons``)."""
-    m = np.asarray(mask, dtype=bool)
+    segm, bbox, area = _described(np.asarray(mask, dtype=bool), polygons)
     ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
-           "segmentation": encode_segm(m, polygons), "bbox": bbox_of_mask(m), "area": int(np.count_nonzero(m)),
-           "score": float(score), "iscrowd": 0}
+           "segmentation": segm, "bbox": bbox, "area": area, "score": float(score),
+           "iscrowd": 0}
     if track_id is not None:
         ann["track_id"] = int(track_id)
     return ann

@@ -1,0 +1,111 @@
+"""The sweep ground plane (seqshape.data.ground): the fast RANSAC equals the former one exactly.
+
+The former implementation is kept below as the slow reference: the plane hypotheses drawn one
+``rng.choice`` at a time, the whole sweep converted to float64, the candidates copied out.
+"""
+
+import numpy as np
+import pytest
+
+from seqshape.data.ground import _fit_plane, _ransac_plane, _triples, ground_plane
+
+
+def _reference_ransac(cand, rng, iterations, threshold, max_tilt_deg):
+    if len(cand) < 3 or iterations < 1:
+        return None, 0
+    tri = cand[np.stack([rng.choice(len(cand), 3, replace=False) for _ in range(iterations)])]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = (norm >= 1e-9) & (np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * norm)
+    if not ok.any():
+        return None, 0
+    n, tri = n[ok] / norm[ok, None] * np.sign(n[ok, 2])[:, None], tri[ok]
+    offs = np.einsum("ij,ij->i", n, tri[:, 0])
+    counts = np.count_nonzero(np.abs(cand @ n.T - offs) < threshold, axis=0)
+    i = int(np.argmax(counts))
+    if counts[i] <= 0:
+        return None, 0
+    return (n[i], float(-offs[i])), int(counts[i])
+
+
+def _reference_ground_plane(points, threshold=0.2, sensor_height=1.73, iterations=100,
+                            max_tilt_deg=10.0, low_quantile=0.3, seed=0, max_candidates=5000):
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    flat = (np.array([0.0, 0.0, 1.0]), float(sensor_height))
+    if len(points) == 0:
+        return flat
+    z_lo = np.quantile(points[:, 2], low_quantile) + 0.5
+    cand = points[points[:, 2] <= z_lo]
+    rng = np.random.default_rng(seed)
+    if len(cand) > max_candidates:
+        cand = cand[rng.choice(len(cand), max_candidates, replace=False)]
+    best, best_count = _reference_ransac(cand, rng, iterations, threshold, max_tilt_deg)
+    if best is None or best_count < 3:
+        return flat
+    n, d = best
+    n2, d2 = _fit_plane(cand[np.abs(cand @ n + d) < threshold])
+    if n2[2] < np.cos(np.radians(max_tilt_deg)):
+        return n, d
+    return n2, d2
+
+
+def _sweep(n: int, seed: int, slope: float = 0.02) -> np.ndarray:
+    """A float32 (n, 4) sweep: a sloped noisy road, walls and vehicles above it."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-40, 40, (n, 2))
+    z = -1.73 + slope * xy[:, 0] + rng.normal(0, 0.03, n)
+    up = rng.random(n) < 0.35
+    z[up] += rng.uniform(0.2, 3.0, up.sum())
+    return np.c_[xy, z, rng.random(n)].astype(np.float32)
+
+
+@pytest.mark.parametrize("m", [3, 4, 5, 7, 16, 101, 5000, 2**31 + 5, 2**33])
+def test_triples_are_the_draws_of_one_choice_at_a_time(m):
+    for seed in range(40):
+        a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+        want = np.stack([a.choice(m, 3, replace=False) for _ in range(60)])
+        np.testing.assert_array_equal(_triples(b, m, 60), want)
+        assert a.bit_generator.state == b.bit_generator.state  # the same draws, no more
+
+
+def test_ransac_equals_the_reference_exactly():
+    rng = np.random.default_rng(3)
+    for trial in range(30):
+        m = int(rng.integers(3, 400))
+        cand = rng.normal(size=(m, 3)) * [5, 5, 0.05 + 0.5 * (trial % 3)]
+        if trial % 4 == 0:
+            cand = cand.astype(np.float32)
+        if trial % 7 == 0:
+            cand[: m // 2] = cand[0]  # many degenerate triples
+        for tilt in (10.0, 1.0):
+            got = _ransac_plane(cand, np.random.default_rng(trial), 60, 0.08, tilt)
+            want = _reference_ransac(cand, np.random.default_rng(trial), 60, 0.08, tilt)
+            assert got[1] == want[1]
+            if want[0] is None:
+                assert got[0] is None
+            else:
+                np.testing.assert_array_equal(got[0][0], want[0][0])
+                assert got[0][1] == want[0][1]
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 3, 50, 3000, 40000])
+def test_ground_plane_equals_the_reference_exactly(n):
+    for seed in range(3):
+        sweep = _sweep(n, seed, slope=0.02 * seed)
+        for pts in (sweep[:, :3], sweep[:, :3].astype(np.float64), sweep[:, :3].tolist()):
+            got = ground_plane(pts, seed=seed)
+            want = _reference_ground_plane(pts, seed=seed)
+            np.testing.assert_array_equal(got[0], want[0])
+            assert got[1] == want[1]
+
+
+def test_ground_plane_fallback_and_small_candidate_sets():
+    wall = np.c_[np.zeros(200), np.random.default_rng(0).uniform(-5, 5, (200, 2))]
+    n, d = ground_plane(wall.astype(np.float32))  # a vertical wall: no horizontal plane
+    np.testing.assert_array_equal(n, [0.0, 0.0, 1.0])
+    assert d == 1.73
+    sweep = _sweep(8000, 5)[:, :3]
+    for kw in ({"max_candidates": 10**6}, {"iterations": 1}, {"low_quantile": 0.9}):
+        got, want = ground_plane(sweep, **kw), _reference_ground_plane(sweep, **kw)
+        np.testing.assert_array_equal(got[0], want[0])
+        assert got[1] == want[1]
