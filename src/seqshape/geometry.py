@@ -125,3 +125,47 @@ def points_in_box(points, size, pose, margin: float = 0.0) -> np.ndarray:
     local = sensor_to_canonical(np.asarray(points, dtype=np.float64), pose)
     half = np.asarray(size, dtype=np.float64) / 2 + margin
     return np.all(np.abs(local) <= half, axis=1)
+
+
+def box_surface(n: int, rng: int | np.random.Generator = 0, size=(4.5, 1.8, 1.5), *, pose=None,
+                dtype=np.float64) -> np.ndarray:
+    """``n`` points uniform over the surface area of a box, shape ``(n, 3)`` (the default size
+    is a passenger car's).
+
+    Parameters
+    ----------
+    n : int
+        Number of points.
+    rng : int or numpy.random.Generator
+        Seed, or a generator to draw from.
+    size : array_like, shape (3,)
+        Box ``(length, width, height)`` in metres; negative entries count as 0, a box of zero
+        area draws its faces uniformly.
+    pose : array_like, shape (4,), optional
+        ``(x, y, z, yaw)``: return the points in the sensor frame (computed in float64).
+    dtype : numpy dtype
+        Dtype of the result.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n, 3)
+
+    Examples
+    --------
+    >>> p = box_surface(4000, 0, (2.0, 1.0, 1.0))
+    >>> on_end = np.isclose(np.abs(p[:, 0]), 1.0)  # the two 1 x 1 end faces: 2 of 10 m^2
+    >>> round(float(on_end.mean()), 1)
+    0.2
+    """
+    rng = np.random.default_rng(rng)  # a Generator is passed through unchanged
+    size = np.maximum(np.asarray(size, dtype=np.float64), 0.0)
+    ln, w, h = size
+    areas = np.array([w * h, w * h, ln * h, ln * h, ln * w, ln * w])
+    p = areas / areas.sum() if areas.sum() > 0 else np.full(6, 1 / 6)
+    face = rng.choice(6, n, p=p)
+    u = rng.uniform(-0.5, 0.5, (n, 3)) * size
+    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3, strict=True)):
+        u[face == i, axis] = sign * size[axis] / 2
+    if pose is not None:
+        u = canonical_to_sensor(u, np.asarray(pose, dtype=np.float64))
+    return u.astype(dtype)

@@ -8,8 +8,9 @@ plain script imports it without ``tests/`` on the path.
 Two box samplers, both in the canonical frame of :mod:`seqshape.geometry` (box centred at the
 origin, ``size = (length, width, height)`` along x, y, z), optionally moved by a ``pose``:
 
-* :func:`box_surface`: uniform over the surface area (a face is drawn with probability
-  proportional to its area), the right reference for Chamfer / EMD floors.
+* :func:`box_surface` (:func:`seqshape.geometry.box_surface`, re-exported: the box fit uses
+  it too): uniform over the surface area (a face is drawn with probability proportional to
+  its area), the right reference for Chamfer / EMD floors.
 * :func:`box_shell`: a point uniform in the box with one of its three coordinates, drawn
   uniformly, pushed to a face: each pair of opposite faces gets a third of the points whatever
   its area (small faces are denser). The synthetic training tracks use it.
@@ -30,7 +31,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from seqshape.geometry import canonical_to_sensor
+from seqshape.geometry import box_surface, canonical_to_sensor
+
+__all__ = ["CAR_SIZE", "TOLERANCES", "assert_close", "box_shell", "box_surface", "tolerance"]
 
 CAR_SIZE = (4.5, 1.8, 1.5)
 """A passenger car's box ``(length, width, height)`` in metres: the default reference shape."""
@@ -44,63 +47,13 @@ TOLERANCES: dict[type, tuple[float, float]] = {
 round trips through rotations of vehicle-scale coordinates (tens of metres) stay within 1e-5."""
 
 
-def _generator(rng: int | np.random.Generator) -> np.random.Generator:
-    return np.random.default_rng(rng)  # a Generator is passed through unchanged
-
-
-def _place(points: np.ndarray, pose, dtype) -> np.ndarray:
-    if pose is not None:
-        points = canonical_to_sensor(points, np.asarray(pose, dtype=np.float64))
-    return points.astype(dtype)
-
-
-def box_surface(n: int, rng: int | np.random.Generator = 0, size=CAR_SIZE, *, pose=None,
-                dtype=np.float64) -> np.ndarray:
-    """``n`` points uniform over the surface area of a box, shape ``(n, 3)``.
-
-    Parameters
-    ----------
-    n : int
-        Number of points.
-    rng : int or numpy.random.Generator
-        Seed, or a generator to draw from.
-    size : array_like, shape (3,)
-        Box ``(length, width, height)`` in metres; negative entries count as 0, a box of zero
-        area draws its faces uniformly.
-    pose : array_like, shape (4,), optional
-        ``(x, y, z, yaw)``: return the points in the sensor frame (computed in float64).
-    dtype : numpy dtype
-        Dtype of the result.
-
-    Returns
-    -------
-    numpy.ndarray, shape (n, 3)
-
-    Examples
-    --------
-    >>> p = box_surface(4000, 0, (2.0, 1.0, 1.0))
-    >>> on_end = np.isclose(np.abs(p[:, 0]), 1.0)  # the two 1 x 1 end faces: 2 of 10 m^2
-    >>> round(float(on_end.mean()), 1)
-    0.2
-    """
-    rng = _generator(rng)
-    size = np.maximum(np.asarray(size, dtype=np.float64), 0.0)
-    ln, w, h = size
-    areas = np.array([w * h, w * h, ln * h, ln * h, ln * w, ln * w])
-    p = areas / areas.sum() if areas.sum() > 0 else np.full(6, 1 / 6)
-    face = rng.choice(6, n, p=p)
-    u = rng.uniform(-0.5, 0.5, (n, 3)) * size
-    for i, (axis, sign) in enumerate(zip([0, 0, 1, 1, 2, 2], [1, -1] * 3, strict=True)):
-        u[face == i, axis] = sign * size[axis] / 2
-    return _place(u, pose, dtype)
-
-
 def box_shell(n: int, rng: int | np.random.Generator = 0, size=CAR_SIZE, *, pose=None,
               dtype=np.float64) -> np.ndarray:
     """``n`` points on a box's faces, a third of them on each pair of opposite faces.
 
     Each point is uniform in the box, then one coordinate (x, y or z, uniformly) is set to
-    ``-size/2`` or ``+size/2`` (equally likely). Parameters as :func:`box_surface`.
+    ``-size/2`` or ``+size/2`` (equally likely). Parameters as
+    :func:`seqshape.geometry.box_surface`.
 
     Examples
     --------
@@ -109,12 +62,14 @@ def box_shell(n: int, rng: int | np.random.Generator = 0, size=CAR_SIZE, *, pose
     >>> round(float(top_or_bottom.mean()), 1)
     0.3
     """
-    rng = _generator(rng)
+    rng = np.random.default_rng(rng)  # a Generator is passed through unchanged
     size = np.asarray(size, dtype=np.float64)
     p = rng.uniform(-0.5, 0.5, (n, 3)) * size
     axis = rng.integers(0, 3, n)
     p[np.arange(n), axis] = rng.choice([-1.0, 1.0], n) * size[axis] / 2
-    return _place(p, pose, dtype)
+    if pose is not None:
+        p = canonical_to_sensor(p, np.asarray(pose, dtype=np.float64))
+    return p.astype(dtype)
 
 
 def tolerance(dtype) -> tuple[float, float]:

@@ -50,8 +50,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from seqshape.errors import ConfigError, require
+from seqshape.geometry import box_surface
 from seqshape.model.estimator import Estimate
-from seqshape.testing import box_surface
 
 METHODS = ("lshape", "min_area_rect")
 CRITERIA = ("closeness", "variance")
@@ -163,7 +163,7 @@ def fit_min_area_rect(xy) -> Rectangle:
 
 def box_surface_points(size, pose, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` points uniform on the surface of a posed box ``size (l, w, h)``, ``pose (4,)``
-    (float32; :func:`seqshape.testing.box_surface`, the one box sampler)."""
+    (float32; :func:`seqshape.geometry.box_surface`, the one box sampler)."""
     return box_surface(n, rng, size, pose=pose, dtype=np.float32)
 
 
