@@ -1,15 +1,19 @@
 """Mask evaluation against hand-computed IoUs and misses."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from seqshape.amodal.evaluate import (
     breakdown,
+    default_row_name,
+    evaluate_files,
     evaluate_image,
     mask_iou_matrix,
     match_masks,
+    reference_kind,
     resolve_pairs,
     summarise,
     within_distance,
@@ -17,7 +21,7 @@ from seqshape.amodal.evaluate import (
 )
 from seqshape.cli import main
 from seqshape.data.kins import image_entry, kins_annotation, write_kins
-from seqshape.errors import ConfigError
+from seqshape.errors import ConfigError, DataError
 
 
 def box(y0, x0, h, w, size=(100, 100)):
@@ -169,3 +173,74 @@ def test_evaluate_masks_command_prints_the_report(label_pair, tmp_path, capsys):
                  "--out", str(out), "--name", "run"]) == 0
     text = capsys.readouterr().out
     assert text == (out / "metrics.md").read_text() + f"\nwrote {out / 'metrics.json'}\n"
+
+
+# ----------------------------------------------------------------------------- issue 18
+
+
+def test_predictions_of_another_image_size_name_both_files_and_sizes(label_pair, tmp_path):
+    _, gt = label_pair
+    small = tmp_path / "small.json"
+    write_kins(small, [image_entry(0, "0000", 0, 50, 80)],
+               [kins_annotation(1, 0, 4, box(0, 0, 10, 10, (50, 80)),
+                                box(0, 0, 10, 10, (50, 80)), 0, 0)])
+    with pytest.raises(DataError) as info:
+        evaluate_files([(small, gt)])
+    assert info.value.path == str(small)
+    message = str(info.value)
+    assert "'0000/000000.png' is 80x50 (width x height) here but 100x100" in message
+    assert str(gt) in message
+
+
+def _scenes_folder(root, pred_source):
+    """A ``seqshape scenes``-like folder: scene.json of format seqshape-scenes and
+    amodal/0000.json; returns the reference file."""
+    (root / "amodal").mkdir(parents=True)
+    (root / "scene.json").write_text(json.dumps({"format": "seqshape-scenes", "version": 1}))
+    gt = root / "amodal" / "0000.json"
+    gt.write_bytes(pred_source.read_bytes())
+    return gt
+
+
+def test_report_title_and_row_say_what_was_compared(label_pair, tmp_path):
+    pred, gt = label_pair
+    table = write_mask_report([(pred, gt)], tmp_path / "ref")
+    assert table.startswith("**Amodal masks against the reference**")
+    assert "| pred.json | 2 | 50.00 | 0.667 | 0.333 | 1 |" in table
+    assert f"Compared: `{pred}` against `{gt}`." in table
+    truth = _scenes_folder(tmp_path / "scenes", gt)
+    table = write_mask_report([(pred, truth)], tmp_path / "truth")
+    assert table.startswith("**Amodal masks against exact ground truth**")
+    assert "| pred.json | 2 | 50.00 | 0.667 | 0.333 | 1 |" in table  # the same numbers
+    assert json.loads((tmp_path / "truth" / "metrics.json").read_text())["n"] == 2
+    # a scene.json of another format is no ground truth
+    (tmp_path / "scenes" / "scene.json").write_text('{"format": "other"}')
+    assert reference_kind([truth]) == "the reference"
+    (tmp_path / "scenes" / "scene.json").write_bytes(b"\xff")
+    assert reference_kind([truth]) == "the reference"
+
+
+def test_default_row_names():
+    assert default_row_name([Path("a/sc-gt.json")]) == "sc-gt.json"
+    assert default_row_name([Path("labels/0000.json"), Path("labels/0001.json")]) == "labels/"
+    assert default_row_name([Path("x/a.json"), Path("y/b.json")]) == "a.json + b.json"
+
+
+def test_evaluate_masks_command_names_the_row_after_the_predictions(label_pair, tmp_path,
+                                                                      capsys):
+    out = tmp_path / "cli"
+    assert main(["evaluate-masks", "--pred", str(label_pair[0]), "--gt", str(label_pair[1]),
+                 "--out", str(out)]) == 0
+    assert "| pred.json | 2 |" in capsys.readouterr().out
+
+
+def test_evaluate_masks_command_names_a_folder_row_after_the_folder(label_pair, tmp_path,
+                                                                      capsys):
+    pdir, gdir = tmp_path / "sc-gt", tmp_path / "gt"
+    pdir.mkdir()
+    gdir.mkdir()
+    (pdir / "0000.json").write_bytes(label_pair[0].read_bytes())
+    (gdir / "0000.json").write_bytes(label_pair[1].read_bytes())
+    assert main(["evaluate-masks", "--pred", str(pdir), "--gt", str(gdir),
+                 "--out", str(tmp_path / "cli")]) == 0
+    assert "| sc-gt/ | 2 | 50.00 | 0.667 | 0.333 | 1 |" in capsys.readouterr().out

@@ -57,7 +57,7 @@ def test_malformed_calib_names_file_and_line():
 
 def test_missing_calib_key(tmp_path):
     p = tmp_path / "c.txt"
-    p.write_text("P2: " + " ".join(["1"] * 12) + "\nR_rect " + " ".join(["0"] * 9) + "\n")
+    p.write_text("P2: 1 0 0 0 0 1 0 0 0 0 1 0\nR_rect 1 0 0 0 1 0 0 0 1\n")
     with pytest.raises(DataError, match="Tr_velo_cam"):
         read_calib(p)
     with pytest.raises(DataError, match="not found"):

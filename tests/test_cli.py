@@ -1,18 +1,20 @@
 """The ``seqshape`` command: options and defaults as released, every option's help shows its
-default, ``export-tracks`` (and the deprecated ``label --export-tracks``)."""
+default, output folders that cannot be written, ``export-tracks`` (and the deprecated
+``label --export-tracks``)."""
 
 from __future__ import annotations
 
 import argparse
-import importlib
+import errno
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from seqshape.camera import kitti_default_calib, write_calib
-from seqshape.cli import COMMANDS, HelpFormatter, main
+from seqshape.cli import COMMANDS, build_parser, command_parser, main
 from seqshape.data import TrackDataset
 from seqshape.data.kitti import KittiLabel, pose_to_label_fields, write_velodyne
 from seqshape.data.kitti import write_labels as write_kitti
@@ -28,8 +30,9 @@ ADDED = {"label": {"backend": "auto", "workers": 1}, "evaluate": {"backend": "au
 # (33229e9), plus ADDED; paths as strings
 RELEASED = {
     "demo": (["--out", "o"], {
-        "baseline": "pretrained", "checkpoint": "pretrained", "emd_every": 1, "max_tracks": None,
-        "out": "o", "preset": "tiny", "seed": 0, "workers": 2}),
+        "baseline": "pretrained", "checkpoint": "pretrained", "emd_every": 20, "max_tracks": None,
+        "out": "o", "preset": "paper", "seed": 123, "tracks_per_vehicle": 1, "vehicles": 16,
+        "workers": 2}),
     "evaluate": (["--data", "d", "--checkpoint", "c", "--out", "o"], {
         "baseline": "pretrained", "batch_tracks": 64, "boxfit": None, "boxfit_method": "lshape",
         "checkpoint": "c", "data": "d", "emd_every": 1, "emd_points": 1024, "floor": "auto",
@@ -74,10 +77,7 @@ RELEASED = {
 
 
 def _command_parser(name: str) -> argparse.ArgumentParser:
-    module = importlib.import_module(f"seqshape.scripts.{COMMANDS[name][0]}")
-    parser = argparse.ArgumentParser(prog=f"seqshape {name}", formatter_class=HelpFormatter)
-    module.add_arguments(parser)
-    return parser
+    return command_parser(name)[1]
 
 
 @pytest.mark.parametrize("case", sorted(RELEASED))
@@ -119,18 +119,102 @@ def test_scenes_degrade_help_comes_from_the_config():
     assert "false instances per true instance (Poisson mean)" in " ".join(text.split())
 
 
+def _help_problems(parser: argparse.ArgumentParser) -> list[str]:
+    """What the help of ``parser`` lacks: an action without help; an option that is neither
+    required nor says its default (a switch: "default: off" or its default in words; a value
+    option: its default value itself, or the default in words when the value is None)."""
+    formatter = parser._get_formatter()
+    problems = []
+    for action in parser._actions:
+        if isinstance(action, (argparse._HelpAction, argparse._VersionAction,
+                               argparse._SubParsersAction)):
+            continue
+        name = "/".join(action.option_strings) or action.dest
+        if not (action.help or "").strip():
+            problems.append(f"{name}: no help")
+            continue
+        if not action.option_strings or action.required:
+            continue
+        text = " ".join(formatter._expand_help(action).split())
+        if "default" not in text.lower():
+            problems.append(f"{name}: no default in {text!r}")
+        elif action.nargs != 0 and action.default is not None and str(action.default) not in text:
+            problems.append(f"{name}: default {action.default!r} not shown in {text!r}")
+    return problems
+
+
 @pytest.mark.parametrize("name", sorted(COMMANDS))
 def test_every_option_has_help_that_shows_its_default(name):
-    parser = _command_parser(name)
-    formatter = HelpFormatter(parser.prog)
-    for action in parser._actions:
-        if isinstance(action, argparse._HelpAction):
-            continue
-        assert action.help, f"seqshape {name} {action.option_strings or action.dest}: no help"
-        takes_value = action.option_strings and action.nargs != 0 and not action.required
-        if takes_value:
-            text = formatter._expand_help(action)
-            assert "default" in text, f"seqshape {name} {action.option_strings}: {text!r}"
+    assert _help_problems(command_parser(name)[1]) == []
+
+
+def test_help_checker_finds_the_gaps():
+    parser = argparse.ArgumentParser(formatter_class=argparse.HelpFormatter)
+    parser.add_argument("--quiet", action="store_true", help="say less")
+    parser.add_argument("--seed", type=int, default=0, help="seed")
+    parser.add_argument("--window", type=int, default=None, help="frames per window")
+    parser.add_argument("--mode", default="fast", help="the mode (default: slow)")
+    parser.add_argument("--lr", type=float)
+    assert [p.split(":")[0] for p in _help_problems(parser)] == [
+        "--quiet", "--seed", "--window", "--mode", "--lr"]
+
+
+def test_switches_and_the_top_level_options_show_their_defaults():
+    assert _help_problems(build_parser()) == []
+    text = " ".join(_command_parser("train").format_help().split())
+    assert "write no TensorBoard logs (default: off)" in text
+    assert "--model {sequential,baseline} the recurrent model or the per-frame baseline " \
+           "(default: sequential)" in text
+    assert "--seed SEED seed (default: the preset's)" in text
+    assert "--preset PRESET training preset: small (2 CPU cores), paper (GPU), smoke " \
+           "(tests) (default: small)" in text
+
+
+def _scenes(out: Path) -> list[str]:
+    return ["scenes", "--out", str(out), "--frames", "2", "--sequences", "1"]
+
+
+def _one_error_line(capsys, command: str) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"seqshape {command}: error: "), err
+    assert "Traceback" not in err[0]
+    return err[0]
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0,
+                    reason="root writes into read-only folders")
+def test_a_read_only_output_folder_is_one_line_naming_it(tmp_path, capsys):
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o500)
+    try:
+        assert main(_scenes(folder / "scenes")) == 1
+        line = _one_error_line(capsys, "scenes")
+        assert str(folder / "scenes") in line and "Permission denied" in line
+        assert list(folder.iterdir()) == []
+    finally:
+        folder.chmod(0o700)
+
+
+def test_an_output_path_through_a_file_is_one_line_naming_it(tmp_path, capsys):
+    (tmp_path / "file").write_text("not a folder")
+    assert main(_scenes(tmp_path / "file" / "scenes")) == 1
+    line = _one_error_line(capsys, "scenes")
+    assert str(tmp_path / "file") in line
+    assert (tmp_path / "file").read_text() == "not a folder"
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(tmp_path, capsys,
+                                                                  monkeypatch):
+    def full(_fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as write(2) raises it
+
+    monkeypatch.setattr(os, "fsync", full)
+    out = tmp_path / "scenes"
+    assert main(_scenes(out)) == 1
+    line = _one_error_line(capsys, "scenes")
+    assert f"writing to {out}: {os.strerror(errno.ENOSPC)} (the disk is full" in line
+    assert list(out.rglob("*")) == []  # the settings file's temporary copy is gone too
 
 
 def test_top_level_help_lists_every_command(capsys):
@@ -181,3 +265,17 @@ def test_export_tracks_and_the_deprecated_label_flag_write_the_same(tmp_path, ca
     assert main(["export-tracks", "--kitti", str(kitti), "--sequence", "0000", "--out",
                  str(tmp_path / "bad"), "--val-fraction", "1"]) == 1
     assert "--val-fraction must be in [0, 1)" in capsys.readouterr().err
+
+
+def test_train_progress_counts_the_steps_asked(tmp_path, capsys, monkeypatch):
+    data = tmp_path / "data"
+    assert main(["generate", "--preset", "tiny", "--vehicles", "3", "--out", str(data)]) == 0
+    monkeypatch.setenv("SEQSHAPE_PROGRESS", "1")
+    capsys.readouterr()
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "run"), "--preset",
+                 "smoke", "--stage-steps", "5,2,3", "--no-tensorboard"]) == 0
+    bars = capsys.readouterr().err.replace("\r", "\n")
+    for stage, steps in ((1, 5), (2, 2), (3, 3)):
+        final = [line for line in bars.splitlines() if line.startswith(f"stage {stage}/3")][-1]
+        assert f"| {steps}/{steps} [" in final and "step/s" in final and "frames/s=" in final
+    assert "‰" not in bars

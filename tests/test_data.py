@@ -122,3 +122,47 @@ def test_union_fractions_keep_a_stable_share(tmp_path):
     assert smaller < set(u.track_ids)  # a smaller share is a subset of a larger one
     with pytest.raises(ValueError, match="fraction"):
         TrackDataset.union([tmp_path / "a"], [0.0])
+
+
+# ----------------------------------------------------------------- manifest checks (issue 18)
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda m: [1, 2], "expected a JSON object, got list"),
+    (lambda m: {**m, "version": "1"}, "version must be a positive integer, got '1'"),
+    (lambda m: {**m, "version": 1.0}, "version must be a positive integer"),
+    (lambda m: {**m, "version": True}, "version must be a positive integer"),
+    (lambda m: {k: v for k, v in m.items() if k != "version"}, "version must be"),
+    (lambda m: {**m, "version": 2}, "version 2 is newer"),
+    (lambda m: {**m, "format": "other"}, "not a seqshape-tracks manifest"),
+    (lambda m: {**m, "tracks": {"a": 1}}, "'tracks' must be a list"),
+    (lambda m: {**m, "tracks": ["tracks/a.npz"]}, "track entry 0: expected an object"),
+    (lambda m: {**m, "tracks": [{"file": "tracks/a.npz"}]}, "lacks 'track_id' or 'file'"),
+    (lambda m: {**m, "tracks": [{**m["tracks"][0], "track_id": 7}]}, "track_id must be"),
+    (lambda m: {**m, "tracks": [{**m["tracks"][0], "file": ["x"]}]}, "file must be"),
+    (lambda m: {**m, "tracks": [{**m["tracks"][0], "n_frames": "5"}]}, "n_frames must be"),
+    (lambda m: {**m, "tracks": [{**m["tracks"][0], "has_complete": 1}]}, "has_complete"),
+    (lambda m: {**m, "tracks": [{**m["tracks"][0], "split": 3}]}, "split must be"),
+    (lambda m: {**m, "tracks": m["tracks"] * 2}, "duplicate track_id 'a'"),
+    (lambda m: {**m, "tracks": [{**m["tracks"][0], "file": "../a.npz"}]}, "leaves the dataset"),
+])
+def test_manifest_content_is_checked(tmp_path, change, message):
+    ds = write_dataset(tmp_path / "ds", [make_track("a")])
+    mpath = ds.path / "manifest.json"
+    mpath.write_text(json.dumps(change(json.loads(mpath.read_text()))))
+    with pytest.raises(DataError, match=message) as info:
+        TrackDataset(ds.path)
+    assert info.value.path == str(mpath)
+
+
+def test_manifest_encoding_and_old_fields(tmp_path):
+    ds = write_dataset(tmp_path / "ds", [make_track("a")])
+    mpath = ds.path / "manifest.json"
+    good = json.loads(mpath.read_text())
+    mpath.write_bytes(b'{"format": "seqshape-tracks\xff"}')
+    with pytest.raises(DataError, match="not UTF-8"):
+        TrackDataset(ds.path)
+    # entries as older releases wrote them: split null, no counts
+    good["tracks"] = [{"track_id": "a", "file": "tracks/a.npz", "split": None}]
+    mpath.write_text(json.dumps(good))
+    assert TrackDataset(ds.path).track_ids == ["a"]

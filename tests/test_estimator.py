@@ -54,8 +54,9 @@ def test_estimate_types_and_point_counts():
         assert o.complete.shape == (40, 3) and o.complete.dtype == np.float32
         assert o.pose.shape == (4,) and o.pose.dtype == np.float64
         assert np.all(np.isfinite(o.complete)) and np.all(np.isfinite(o.pose))
-    # a track with no points yet is decoded around the origin (no known mean)
+    # a track with no points yet is decoded around the origin (no known mean): not valid
     assert np.linalg.norm(out[0].complete.mean(0)) < np.linalg.norm(out[2].complete.mean(0))
+    assert [o.valid for o in out] == [False, True, True]
 
 
 def test_empty_frame_does_not_corrupt_state():
@@ -72,8 +73,14 @@ def test_empty_frame_does_not_corrupt_state():
     without_gap = b.step(["x"], [f2])[0]
     np.testing.assert_array_equal(with_gap.complete, without_gap.complete)
     nan = f2.copy()
-    nan[:5] = np.nan  # non-finite rows are dropped, not propagated
-    assert np.all(np.isfinite(b.step(["y"], [nan])[0].complete))
+    nan[:5] = np.nan  # non-finite rows (a sensor's no-returns) are dropped with a warning
+    with pytest.warns(UserWarning, match=r"track 'y'.*dropped 5 of 40 points that are not fin"):
+        dropped = Estimator(_model()).step(["y"], [nan])[0]
+    alone = Estimator(_model()).step(["y"], [f2[5:]])[0]
+    assert dropped.num_points == 35
+    np.testing.assert_array_equal(dropped.complete, alone.complete)
+    with pytest.warns(UserWarning), pytest.raises(ConfigError, match="more than 1000 m"):
+        b.step(["y"], [np.concatenate([nan, [[2000.0, 0.0, 0.0]]])])  # NaN does not hide range
 
 
 def test_reset():
@@ -394,3 +401,127 @@ def test_points_length_matches_numpy_percentiles():
         ref = np.percentile(proj, 99, axis=0) - np.percentile(proj, 1, axis=0)
         assert points_length(p) == pytest.approx(ref.max(), rel=1e-5)
     assert points_length(np.zeros((1, 3))) == 0.0
+
+
+# ------------------------------------------------------------- issue 18: estimator semantics
+BACKENDS = ["torch", "torch-lean", "onnx"]
+
+
+def _backend(name: str) -> str:
+    if name == "onnx":
+        pytest.importorskip("onnxruntime")
+        pytest.importorskip("onnx")
+    return name
+
+
+def _box_cloud(rng, n, centre=(12.0, -3.0, -0.8)):
+    return (rng.uniform(-0.5, 0.5, (n, 3)) * [4.4, 1.8, 1.4] + centre).astype(np.float32)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_estimates_are_not_valid_until_a_track_has_points(backend):
+    est = Estimator(_model(), backend=_backend(backend))
+    rng = np.random.default_rng(11)
+    empty = np.zeros((0, 3), np.float32)
+    flags = []
+    for k in range(5):
+        a = [empty, [], _box_cloud(rng, 30), empty, _box_cloud(rng, 20)][k]
+        out = est.step(["a", "b"], [a, _box_cloud(rng, 25, (8.0, 4.0, -0.8))])
+        flags.append((out[0].valid, out[1].valid))
+        assert all(np.all(np.isfinite(o.complete)) and np.all(np.isfinite(o.pose)) for o in out)
+    assert flags == [(False, True), (False, True), (True, True), (True, True), (True, True)]
+    est.reset("a")  # a reset track is new again
+    assert [o.valid for o in est.step(["a", "b"], [empty, empty])] == [False, True]
+
+
+def test_an_estimate_without_a_finite_pose_is_not_valid():
+    from seqshape.model.estimator import Estimate
+
+    assert not Estimate("a", np.zeros((0, 3), np.float32), np.full(4, np.nan), 0).valid
+    assert Estimate("a", np.zeros((5, 3), np.float32), np.zeros(4), 5).valid
+
+
+def test_an_empty_list_is_zero_points():
+    rng = np.random.default_rng(12)
+    pts = _box_cloud(rng, 30)
+    outs = []
+    for empty in ([], np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3), np.int32)):
+        est = Estimator(_model())
+        first = est.step(["a"], [empty])[0]
+        assert first.num_points == 0 and not first.valid
+        outs.append((first, est.step(["a"], [pts])[0]))
+    for first, second in outs[1:]:
+        for a, b in ((first, outs[0][0]), (second, outs[0][1])):
+            assert np.array_equal(a.complete, b.complete) and np.array_equal(a.pose, b.pose)
+
+
+@pytest.mark.parametrize(("points", "message"), [
+    (np.ones((4, 3), bool), "dtype bool \\(booleans\\)"),
+    (np.ones((4, 3), complex), "dtype complex128 \\(complex numbers\\)"),
+    (np.full((4, 3), "1.0"), "dtype <U3 \\(strings\\)"),
+    (np.array([[1.0, 2.0, None]]), "dtype object \\(Python objects\\)"),
+    (None, "dtype object"),
+    ([[1.0, 2.0, 3.0], [1.0, 2.0]], "not an \\(N, 3\\) array"),
+    (np.ones((4, 2)), "shape \\(N, 3\\), got \\(4, 2\\)"),
+    ([[]], "shape \\(N, 3\\), got \\(1, 0\\)"),
+    (np.ones(3), "shape \\(N, 3\\), got \\(3,\\)"),
+    (np.array([[800.0, 700.0, 0.0]]), "point 0 at \\(800.0, 700.0, 0.0\\) is more than 1000 m"),
+    (np.array([[5.0, 0, 0], [0, 0, -1e300]]), "point 1 .* more than 1000 m"),
+    (np.array([[5, 0, 0], [2 ** 40, 0, 0]], np.int64), "point 1 .* more than 1000 m"),
+])
+def test_refused_points_name_the_track_and_change_no_state(points, message):
+    est = Estimator(_model())
+    good = _box_cloud(np.random.default_rng(13), 20)
+    with pytest.raises(ConfigError, match=f"point_lists\\[1\\] \\(track 'car9'\\): .*{message}"):
+        est.step(["car7", "car9"], [good, points])
+    assert est.track_ids == []  # the good track of the refused step did not advance either
+    fresh = Estimator(_model())
+    a, b = est.step(["car7"], [good])[0], fresh.step(["car7"], [good])[0]
+    assert np.array_equal(a.complete, b.complete)
+
+
+def test_refused_hints_change_no_state():
+    est = Estimator(_model())
+    good = _box_cloud(np.random.default_rng(14), 20)
+    with pytest.raises(ConfigError, match="timestamps\\[1\\]"):
+        est.step(["a", "b"], [good, good], timestamps=[0.0, "noon"])
+    assert est.track_ids == []
+
+
+def test_numbers_of_any_real_dtype_within_range_are_accepted():
+    rng = np.random.default_rng(15)
+    ints = rng.integers(-30, 30, size=(40, 3))
+    ref = Estimator(_model()).step(["a"], [ints.astype(np.float32)])[0]
+    for pts in (ints, ints.astype(np.uint8) if ints.min() >= 0 else ints.astype(np.int16),
+                ints.astype(np.float16), ints.tolist()):
+        out = Estimator(_model()).step(["a"], [pts])[0]
+        assert np.array_equal(out.complete, ref.complete) and np.array_equal(out.pose, ref.pose)
+    far = np.array([[999.0, 0.0, 0.0], [0.0, -700.0, 700.0]])  # 999 m and 989.9 m: accepted
+    assert Estimator(_model()).step(["a"], [far])[0].num_points == 2
+
+
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_valid_outputs_are_the_network_step_by_step_bit_for_bit(recurrent):
+    """The reference backend's estimates on a normal track (float32 and float64 input, an
+    empty frame in the middle) are the network's own forward pass, one frame at a time with
+    the state carried, exactly."""
+    model = _model(recurrent)
+    rng = np.random.default_rng(16)
+    frames = [_box_cloud(rng, n, (10.0 + 0.5 * t, 2.0, -0.8))
+              for t, n in enumerate([30, 64, 0, 5, 50])]
+    est32, est64 = Estimator(model), Estimator(model)
+    hidden, mean = torch.zeros(1, model.state_size), torch.zeros(1, 3)
+    seen = torch.zeros(1, dtype=torch.bool)
+    for f in frames:
+        n = max(1, len(f))
+        batch = np.zeros((1, 1, n, 3), np.float32)
+        batch[0, 0, :len(f)] = f
+        with torch.inference_mode():
+            ref = model(torch.from_numpy(batch), torch.tensor([[len(f)]]), hidden, mean, seen)
+        hidden, mean, seen = ref["hidden"], ref["mean"], ref["seen"][:, 0]
+        a = est32.step(["t"], [f])[0]
+        b = est64.step(["t"], [f.astype(np.float64)])[0]
+        for out in (a, b):
+            assert out.valid
+            np.testing.assert_array_equal(out.complete, ref["complete"][0, 0].numpy())
+            np.testing.assert_array_equal(out.pose, ref["pose"][0, 0].double().numpy())

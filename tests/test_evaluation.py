@@ -281,7 +281,7 @@ def test_demo_end_to_end_with_untrained_models(tmp_path, monkeypatch):
         "extra", "an appended step", lambda ctx: extra.append(ctx.data) or ctx.sections.append(
             Section("Extra", "appended `step`\n")))])
     rc = main(["demo", "--out", str(out), "--checkpoint", str(seq), "--baseline", str(base),
-               "--max-tracks", "2", "--emd-every", "4", "--workers", "1"])
+               "--preset", "tiny", "--vehicles", "0", "--tracks-per-vehicle", "0", "--max-tracks", "2", "--emd-every", "4", "--workers", "1"])
     assert rc == 0 and extra == [out / "data"]
     report = (out / "report.md").read_text()
     assert "| sequential (ours) |" in report and "## Extra" in report

@@ -6,6 +6,7 @@ from pycocotools import mask as coco_mask
 
 from seqshape.data.kins import (
     KINS_CATEGORIES,
+    SegmentationError,
     annotation_mask,
     annotations_by_image,
     bbox_of_mask,
@@ -17,6 +18,7 @@ from seqshape.data.kins import (
     occlusion_order,
     read_coco_instances,
     read_kins,
+    rle_runs,
     rle_to_mask,
     segm_to_mask,
     write_coco_instances,
@@ -312,3 +314,148 @@ def test_annotations_equal_the_whole_mask_composition():
     poly = kins_annotation(1, 1, 1, masks[-3], masks[-3], 0, 0, polygons=True)
     assert poly["a_segm"] == mask_to_polygons(masks[-3])
     assert poly["a_area"] == int(masks[-3].sum())
+
+
+# ----------------------------------------------------------------------------- validation (issue 18)
+
+
+def _pixel_runs(mask) -> list[int]:
+    """Uncompressed COCO counts of a mask by a plain loop over its column-major pixels."""
+    runs, value, n = [], False, 0
+    for v in np.asarray(mask, dtype=bool).T.ravel():
+        if v != value:
+            runs.append(n)
+            value, n = v, 0
+        n += 1
+    return runs + [n]
+
+
+def test_rle_runs_of_compressed_strings_match_a_pixel_loop():
+    for m in _masks(4):
+        if m.size <= 5000:
+            assert rle_runs(mask_to_rle(m)).tolist() == _pixel_runs(m)
+    # long runs (several 5-bit groups, negative differences) in a KITTI-size mask
+    big = np.zeros((375, 1242), bool)
+    big[10:370, 3:1200:7] = True
+    big[100:101, :] = True
+    assert rle_runs(mask_to_rle(big)).tolist() == _pixel_runs(big)
+    assert rle_runs({"size": [0, 3], "counts": ""}).tolist() == []
+
+
+@pytest.mark.parametrize("rle,message", [
+    ({"size": [4, 5], "counts": ""}, "cover 0 pixels, its size \\[4, 5\\] has 20"),
+    ({"size": [4, 5], "counts": "1"}, "cover 1 pixels"),
+    ({"size": [4, 5], "counts": [1, 2]}, "cover 3 pixels"),
+    ({"size": [4, 5], "counts": [100]}, "cover 100 pixels"),
+    ({"size": [4, 5], "counts": [-3, 23]}, "counts\\[0\\] = -3"),
+    ({"size": [4, 5], "counts": [1.5, 18.5]}, "counts\\[0\\] = 1.5"),
+    ({"size": [4, 5], "counts": [True, 19]}, "counts\\[0\\] = True"),
+    ({"size": [4, 5], "counts": None}, "string or a list"),
+    ({"size": [-4, 5], "counts": []}, "non-negative integers"),
+    ({"size": [4], "counts": ""}, "\\[height, width\\]"),
+    ({"size": [1 << 20, 1 << 20], "counts": []}, "over"),
+    ({"size": [4, 5], "counts": "\x80"}, "not ASCII"),
+    ({"size": [4, 5], "counts": "zz"}, "characters outside"),
+    ({"size": [4, 5], "counts": "0h"}, "truncated"),  # 'h' = 56: a group with 'more' set
+    ({"size": [4, 5], "counts": "0L"}, "run 1 of length -4"),  # 'L': 0x1c, sign set: 28 - 32
+    ({"counts": ""}, "'size' and 'counts'"),
+])
+def test_malformed_rles_are_refused(rle, message):
+    with pytest.raises(SegmentationError, match=message):
+        rle_to_mask(rle)
+
+
+def test_uncompressed_rle_of_integral_floats_and_bytes_counts():
+    np.testing.assert_array_equal(rle_to_mask({"size": [2, 3], "counts": [1.0, 2, 3]}),
+                                  rle_to_mask({"size": [2, 3], "counts": [1, 2, 3]}))
+    rle = mask_to_rle(_rect(4, 5, 1, 1, 3, 3))
+    np.testing.assert_array_equal(rle_to_mask({**rle, "counts": rle["counts"].encode()}),
+                                  _rect(4, 5, 1, 1, 3, 3))
+
+
+def test_hand_drawn_polygon_round_trip(tmp_path):
+    # an L drawn along pixel edges: rows 1-2 columns 1-4, rows 3-5 columns 1-2, and a second
+    # polygon, the square of pixel (5, 5)
+    poly = [[1, 1, 5, 1, 5, 3, 3, 3, 3, 6, 1, 6], [5, 5, 6, 5, 6, 6, 5, 6]]
+    expected = np.zeros((7, 6), bool)
+    expected[1:3, 1:5] = True
+    expected[3:6, 1:3] = True
+    expected[5, 5] = True
+    np.testing.assert_array_equal(segm_to_mask(poly, 7, 6), expected)
+    # through a KINS file, as the KINS release stores them (a_segm polygons)
+    images = [image_entry(0, "0000", 0, 7, 6)]
+    ann = kins_annotation(1, 0, 4, expected, expected, 0, 0)
+    ann["a_segm"] = ann["i_segm"] = poly
+    write_kins(tmp_path / "poly.json", images, [ann])
+    doc = read_kins(tmp_path / "poly.json")
+    np.testing.assert_array_equal(annotation_mask(doc["annotations"][0], "a_segm", images[0]),
+                                  expected)
+    # and back: the polygons of the mask give the mask again
+    np.testing.assert_array_equal(segm_to_mask(mask_to_polygons(expected), 7, 6), expected)
+
+
+@pytest.mark.parametrize("segm,message", [
+    ([[[1, 2], [3, 4], [5, 6]]], "flat list of numbers"),
+    ([["a", "b", 1, 2, 3, 4]], "flat list of numbers"),
+    ([[1, 2, 3, 4]], "even number \\(>= 6\\)"),
+    ([[1, 2, 3, 4, 5, 6, 7]], "even number"),
+    ([[float("nan"), 0, 1, 1, 2, 2]], "finite"),
+    ([[1e300, 0, 1, 1, 2, 2]], "within one image size"),
+    ([[10**400, 0, 1, 1, 2, 2]], "finite"),
+    ([[-11, 0, 1, 1, 2, 2]], "within one image size"),
+    ([[True, 0, 1, 1, 2, 2]], "flat list"),
+    ("polygon", "RLE dict or a list"),
+])
+def test_malformed_polygons_are_refused(segm, message):
+    with pytest.raises(SegmentationError, match=message):
+        segm_to_mask(segm, 10, 10)
+
+
+def _doc_with(tmp_path, change):
+    images, anns, _ = _scene()
+    doc = {"images": images, "categories": KINS_CATEGORIES, "annotations": anns}
+    doc = json.loads(json.dumps(doc))
+    change(doc)
+    path = tmp_path / "k.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda d: d["images"][0].update(height="375"), r"images\[0\]: height, width must be"),
+    (lambda d: d["images"][0].update(width=0), r"images\[0\]: height, width must be positive"),
+    (lambda d: d["images"][0].update(id=[1]), r"images\[0\]\.id: expected a non-negative"),
+    (lambda d: d["images"][0].update(file_name=3), r"images\[0\]\.file_name"),
+    (lambda d: d["images"].__setitem__(0, "x"), r"images\[0\]: expected an object"),
+    (lambda d: d["annotations"][0].update(id={"a": 1}), r"annotations\[0\]\.id"),
+    (lambda d: d["annotations"][0].update(category_id=None), r"annotations\[0\]\.category_id"),
+    (lambda d: d["annotations"][1].update(a_bbox=[1, 2, 3]), r"annotations\[1\]\.a_bbox"),
+    (lambda d: d["annotations"][1].update(i_area=-1), r"annotations\[1\]\.i_area"),
+    (lambda d: d["annotations"][1].update(ico_id=1.5), r"annotations\[1\]\.ico_id"),
+    (lambda d: d["annotations"][1].update(distance="far"), r"annotations\[1\]\.distance"),
+    (lambda d: d["annotations"][1].update(track_id=[3]), r"annotations\[1\]\.track_id"),
+    (lambda d: d["annotations"][1]["a_segm"].update(counts=""),
+     r"annotations\[1\]\.a_segm: RLE counts cover 0 pixels"),
+    (lambda d: d["annotations"][1].update(i_segm=[[1, 2, 3]]),
+     r"annotations\[1\]\.i_segm: polygon 0: 3 coordinates"),
+    (lambda d: d["annotations"].__setitem__(2, None), r"annotations\[2\]: expected an object"),
+])
+def test_read_kins_refuses_wrong_types_naming_the_file(tmp_path, change, message):
+    path = _doc_with(tmp_path, change)
+    with pytest.raises(DataError, match=message) as info:
+        read_kins(path)
+    assert info.value.path == str(path)
+
+
+def test_read_kins_files_of_other_encodings(tmp_path):
+    path = tmp_path / "k.json"
+    images, anns, _ = _scene()
+    text = json.dumps({"images": images, "categories": KINS_CATEGORIES, "annotations": anns})
+    path.write_bytes(b"\xef\xbb\xbf" + text.encode())  # a UTF-8 BOM is fine
+    assert read_kins(path)["annotations"] == anns
+    path.write_bytes(text.encode("utf-16"))
+    with pytest.raises(DataError, match="not UTF-8"):
+        read_kins(path)
+    path.write_text(json.dumps([1, 2]))
+    with pytest.raises(DataError, match="got a JSON array"):
+        read_coco_instances(path)

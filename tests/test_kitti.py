@@ -74,7 +74,8 @@ def test_label_write_read_exact(tmp_path):
     rng = np.random.default_rng(0)
     labels = [KittiLabel(frame=int(f), track_id=int(t), type=ty, truncated=tr,
                          occluded=int(rng.integers(0, 4)), alpha=rng.uniform(-3, 3),
-                         bbox=rng.uniform(0, 1200, 4), dimensions=rng.uniform(1, 5, 3),
+                         bbox=np.r_[lt := rng.uniform(0, 600, 2), lt + rng.uniform(1, 600, 2)],
+                         dimensions=rng.uniform(1, 5, 3),
                          location=rng.normal(0, 20, 3), rotation_y=rng.uniform(-3, 3),
                          score=sc)
               for f, t, ty, tr, sc in [(0, 0, "Car", 0, None), (0, 1, "Van", 0.37, None),
@@ -379,6 +380,11 @@ def test_image_size_from_png(tmp_path):
     (tmp_path / "x.png").write_bytes(b"GIF89a" + b"\0" * 30)
     with pytest.raises(DataError, match="not a PNG"):
         png_size(tmp_path / "x.png")
+    head = bytearray(p.read_bytes())
+    head[16:20] = b"\0\0\0\0"  # width 0
+    (tmp_path / "z.png").write_bytes(bytes(head))
+    with pytest.raises(DataError, match=r"z\.png: PNG header gives an image size of 0 x 37"):
+        png_size(tmp_path / "z.png")
 
 
 def test_crop_box_matches_slow_reference():

@@ -1,4 +1,5 @@
-"""seqshape._runner: settings check, resume, shards and the worker pool, on a toy job.
+"""seqshape._runner: settings check, resume, shards and the worker pool, on a toy job; every
+worker pool of seqshape ends with its parent (``kill -9``).
 
 The toy job writes one file per item, its bytes drawn from ``default_rng([SEED, item])``, the
 way ``generate`` and ``scenes`` seed their items; the references are plain serial runs and
@@ -8,7 +9,12 @@ hand-listed shards.
 from __future__ import annotations
 
 import json
+import os
 import signal
+import subprocess
+import sys
+import textwrap
+import time
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +22,11 @@ import pytest
 
 from seqshape._io import atomic_write_bytes
 from seqshape._runner import (
+    ORPHAN_EXIT,
     check_settings,
     parse_shard,
     plan_work,
+    process_alive,
     run_pool,
     shard_items,
 )
@@ -220,3 +228,106 @@ def test_pool_progress_weights_and_bad_workers(monkeypatch):
     with pytest.raises(ConfigError, match="workers"):
         list(run_pool(_offset_square, [1], 0))
     assert list(run_pool(_offset_square, [], 3)) == []
+
+
+# ----------------------------------------------------------------------------- orphans
+
+# A parent that starts one of seqshape's worker pools with two workers; each worker touches
+# FOLDER/<its pid> and sleeps. Run as a script: spawned workers import it as __mp_main__.
+_PARENT = textwrap.dedent("""
+    import os, sys, time
+    from pathlib import Path
+
+    def hold(folder):
+        Path(folder, str(os.getpid())).touch()
+        time.sleep(120)
+
+    if __name__ == "__main__":
+        kind, folder = sys.argv[1:]
+        if kind == "run_pool":
+            from seqshape._runner import run_pool
+            list(run_pool(hold, [folder, folder], 2, progress_bar=False))
+        elif kind == "emd":
+            from seqshape.evaluation.runner import _Collector
+            pool = _Collector(2).pool
+            [job.result() for job in [pool.submit(hold, folder) for _ in range(2)]]
+        elif kind == "tracks":
+            from seqshape.data.tracks_export import _pool
+            _pool(2).map(hold, [folder, folder], chunksize=1)
+""")
+
+
+def _ended(pid: int) -> bool:
+    """Whether ``pid`` has ended (gone, or a zombie nobody reaps), read from /proc."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return True
+    return stat.rpartition(")")[2].split()[0] in ("Z", "X")
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="needs /proc")
+def test_workers_of_every_pool_end_when_their_parent_is_killed(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(_PARENT)
+    kinds = ("run_pool", "emd", "tracks")
+    env = {**os.environ, "SEQSHAPE_PROGRESS": "0"}
+    parents = {}
+    for kind in kinds:
+        (tmp_path / kind).mkdir()
+        parents[kind] = subprocess.Popen([sys.executable, str(script), kind,
+                                          str(tmp_path / kind)], env=env)
+    workers: dict[str, list[int]] = {}
+    try:
+        deadline = time.monotonic() + 60
+        while len(workers) < len(kinds) and time.monotonic() < deadline:
+            for kind in kinds:
+                pids = [int(p.name) for p in (tmp_path / kind).iterdir()]
+                if len(pids) == 2:
+                    workers[kind] = pids
+            time.sleep(0.1)
+        assert sorted(workers) == sorted(kinds), "the workers did not start"
+        for proc in parents.values():
+            proc.kill()  # SIGKILL: no cleanup in the parent
+            proc.wait()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not all(
+                _ended(pid) for pids in workers.values() for pid in pids):
+            time.sleep(0.1)
+        alive = {k: [p for p in pids if not _ended(p)] for k, pids in workers.items()}
+        assert alive == {k: [] for k in kinds}
+    finally:
+        for proc in parents.values():
+            proc.kill()
+            proc.wait()
+        for pid in (p for pids in workers.values() for p in pids):
+            if not _ended(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def test_process_alive():
+    assert process_alive(os.getpid())
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    assert not process_alive(proc.pid)  # reaped: gone
+
+
+def test_watch_parent_ends_a_process_whose_parent_is_gone():
+    """A child told that its parent is a process that has ended exits at once with
+    ORPHAN_EXIT; one whose parent lives goes on."""
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    code = ("import sys, time; from seqshape._runner import watch_parent; "
+            "watch_parent(int(sys.argv[1]), interval=0.05); print('watching', flush=True); "
+            "time.sleep(30)")
+    orphan = subprocess.run([sys.executable, "-c", code, str(gone.pid)], timeout=30)
+    assert orphan.returncode == ORPHAN_EXIT
+    child = subprocess.Popen([sys.executable, "-c", code, str(os.getpid())],
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline() == "watching\n"
+        time.sleep(0.5)  # ten looks at a living parent
+        assert child.poll() is None
+    finally:
+        child.kill()
+        child.wait()

@@ -203,6 +203,47 @@ def test_malformed_files_raise_data_error_naming_the_file(tmp_path, name, conten
     assert name in str(info.value) and info.value.path == str(path)
 
 
+_TETRA = "v 0 0 0\nv 4 0 0\nv 0 2 0\nv 0 0 1.5\n"
+_TETRA_FACES = "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+
+
+def _ply(vertices, faces) -> bytes:
+    head = (f"ply\nformat ascii 1.0\nelement vertex {len(vertices)}\nproperty float x\n"
+            f"property float y\nproperty float z\nelement face {len(faces)}\n"
+            "property list uchar int vertex_indices\nend_header\n")
+    body = "".join(" ".join(map(str, v)) + "\n" for v in vertices)
+    body += "".join(f"3 {a} {b} {c}\n" for a, b, c in faces)
+    return (head + body).encode()
+
+
+@pytest.mark.parametrize("name,content,message", [
+    ("beyond.obj", _TETRA + _TETRA_FACES + "f 1 2 9\n", r"beyond\.obj:9: face vertex index 9"),
+    ("zero.obj", _TETRA + _TETRA_FACES + "f 0 1 2\n", "index 0 is out of range"),
+    ("back.obj", _TETRA + _TETRA_FACES + "f -1 -2 -5\n", "index -5 is out of range"),
+    ("nan.obj", _TETRA.replace("1.5", "nan") + _TETRA_FACES, "NaN or infinite"),
+    ("flat.obj", _TETRA.replace("1.5", "0") + _TETRA_FACES, "flat: no extent along the file's z"),
+    ("line.obj", "v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "no faces with non-zero area"),
+    ("faces.ply", _ply([[0, 0, 0], [4, 0, 0], [0, 2, 0], [0, 0, 1.5]], [[0, 2, 1], [0, 1, 7]]),
+     "out of range"),
+    ("flat.ply", _ply([[0, 0, 0], [4, 0, 0], [0, 2, 0], [4, 2, 0]], [[0, 2, 1], [1, 2, 3]]),
+     "flat"),
+])
+def test_broken_meshes_are_refused_naming_the_file(tmp_path, name, content, message):
+    path = tmp_path / name
+    path.write_bytes(content.encode() if isinstance(content, str) else content)
+    with pytest.raises(DataError, match=message) as info:
+        load_vehicle(path)
+    assert info.value.path == str(path)
+    assert load_vehicle_from_text(tmp_path, _TETRA + _TETRA_FACES).size.tolist() == [4, 2, 1.5]
+
+
+def load_vehicle_from_text(folder, text):
+    """The valid tetrahedron the broken cases start from, loaded (the checks let it through)."""
+    path = folder / "ok.obj"
+    path.write_text(text)
+    return load_vehicle(path)
+
+
 def test_missing_and_unsupported_files(tmp_path):
     with pytest.raises(DataError, match="no such file"):
         load_vehicle(tmp_path / "nope.obj")

@@ -2,6 +2,10 @@
 
 Every writer goes to a temporary file in the destination folder, flushes it to disk and
 renames it over the destination (``os.replace`` is atomic on POSIX and Windows).
+
+Output names made from data (track ids, log, sequence and camera names read from files) go
+through :func:`safe_stem`, and the path through :func:`contained_path`, so that a name like
+``../x`` or ``/etc/passwd`` stored in a file cannot write outside the output folder.
 """
 
 from __future__ import annotations
@@ -9,7 +13,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
@@ -81,3 +87,53 @@ def read_text(path: str | Path, what: str) -> str:
         raise DataError(path, f"{what} not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(path, f"unreadable {what} ({exc})") from None
+
+
+MAX_STEM = 120  #: longest name :func:`safe_stem` returns
+_UNSAFE_CHARS = re.compile(r"[^A-Za-z0-9._-]")
+
+
+def safe_stem(name: object, max_length: int = MAX_STEM) -> str:
+    """A file-name stem made from ``name`` (a track id, a log name...) that stays in its folder.
+
+    ASCII letters, digits and ``-_.`` are kept, every other character (``/``, ``\\``, spaces,
+    non-ASCII letters, control characters) becomes ``_``; leading dots are dropped (no ``..``,
+    no hidden files); an empty result is ``_``. A stem longer than ``max_length`` (at least 16)
+    is cut and ends in ``-`` plus 8 hex digits of the CRC-32 of the whole name, so long names
+    that differ only at the end stay apart. Deterministic (the same name gives the same stem
+    on every run and machine). Different names can give the same stem (``a/b`` and ``a_b``).
+
+    >>> safe_stem("../escaped"), safe_stem("/etc/passwd"), safe_stem(""), safe_stem("..")
+    ('_escaped', '_etc_passwd', '_', '_')
+    >>> safe_stem("Straße 7")
+    'Stra_e_7'
+    """
+    if max_length < 16:
+        raise ValueError(f"max_length must be at least 16, got {max_length}")
+    text = str(name)
+    stem = _UNSAFE_CHARS.sub("_", text).lstrip(".") or "_"
+    if len(stem) > max_length:
+        digest = zlib.crc32(text.encode("utf-8", "surrogatepass")) & 0xFFFFFFFF
+        stem = f"{stem[:max_length - 9]}-{digest:08x}"
+    return stem
+
+
+def contained_path(folder: str | Path, name: str | Path, *, source: str | Path | None = None,
+                   what: str = "output name", folder_kind: str = "folder") -> Path:
+    """``folder / name``, checked to resolve inside ``folder`` (symbolic links followed).
+
+    The one containment check for names that come from data: output names (already made safe
+    by :func:`safe_stem`; this is the last check before a write) and paths read from a file
+    (a manifest's track files). A path that leaves ``folder`` (``..``, an absolute name, a
+    link pointing out) is a :class:`~seqshape.errors.DataError` naming ``source`` (the file
+    the name came from) or else the path itself; ``what`` and ``folder_kind`` word the message.
+    """
+    folder = Path(folder)
+    path = folder / name
+    root = folder.resolve()
+    target = path.resolve()
+    if target == root or not target.is_relative_to(root):
+        raise DataError(source if source is not None else path,
+                        f"{what} {str(name)!r} resolves to {target}, outside the {folder_kind} "
+                        f"{root}; refusing to follow it")
+    return path

@@ -1,6 +1,6 @@
 """The one runner of long commands that write one output per item (tracks, scene sequences).
 
-Four pieces, each usable alone, shared by ``seqshape generate`` and ``seqshape scenes``:
+Five pieces, each usable alone, shared by ``seqshape generate`` and ``seqshape scenes``:
 
 * :func:`check_settings`: one folder, one set of settings. The first run writes a JSON
   settings file; a later run into the same folder must bring equal settings (a resume) or is
@@ -14,7 +14,12 @@ Four pieces, each usable alone, shared by ``seqshape generate`` and ``seqshape s
 * :func:`run_pool`: the worker pool. ``fn`` runs on every unit in this process
   (``workers=1``) or in spawned worker processes (results in completion order), with a
   progress bar. Workers ignore SIGINT: Ctrl-C reaches the parent only, which terminates the
-  pool and re-raises :class:`KeyboardInterrupt` (the CLI then says "rerun to resume").
+  pool and re-raises :class:`KeyboardInterrupt` (the CLI then says "rerun to resume"). Workers
+  die with their parent (:func:`watch_parent`): a ``kill -9`` of the command leaves no worker
+  running on.
+* :func:`watch_parent`: the watchdog every worker pool of seqshape starts in its workers
+  (this one, the EMD pool of :mod:`seqshape.evaluation.runner`, the log pool of
+  :mod:`seqshape.data.tracks_export`).
 * :func:`parse_shard`: the ``--shard K/N`` option.
 
 Every item's output must depend only on the item (seeded per item), never on the worker
@@ -31,7 +36,10 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import signal
+import threading
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -138,8 +146,64 @@ def check_settings(folder: str | Path, file_name: str, settings: dict, *,
         atomic_write_json(path, settings)
 
 
-def _init_worker(initializer: Callable | None, initargs: tuple) -> None:
-    """Worker start: ignore SIGINT (the parent handles Ctrl-C), then the caller's initializer."""
+#: seconds between two looks of a worker's watchdog at its parent (:func:`watch_parent`)
+PARENT_POLL_S = 0.5
+#: exit status of a worker that ended itself because its parent died
+ORPHAN_EXIT = 70
+
+
+def process_alive(pid: int) -> bool:
+    """Whether a process ``pid`` exists and has not ended (a zombie, ended but not yet reaped
+    by its parent, counts as ended where ``/proc`` tells). Never signals it: on Windows, where
+    ``os.kill(pid, 0)`` would end the process, this is always True."""
+    if os.name == "nt":  # pragma: no cover - os.kill(pid, 0) terminates there
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by another user
+        pass
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:  # no /proc (macOS) or gone meanwhile: trust os.kill
+        return True
+    return stat.rpartition(")")[2].split()[:1] not in (["Z"], ["X"])
+
+
+def watch_parent(parent: int | None = None, interval: float = PARENT_POLL_S) -> threading.Thread:
+    """Start a daemon thread that ends this (worker) process when its parent is gone.
+
+    Every ``interval`` seconds the thread compares ``os.getppid()`` with its value at the start
+    (an orphan is adopted by init or a subreaper, so the value changes when the parent dies)
+    and, when ``parent`` (the pid of the process that made the pool) is given, checks that this
+    process still exists; the first look is at once. Either way, ``os._exit(ORPHAN_EXIT)``
+    ends the worker without unwinding: whatever it was writing goes through
+    :mod:`seqshape._io`, so nothing is left half-written. ``prctl(PR_SET_PDEATHSIG)`` is not
+    used: on Linux it fires when the parent *thread* that started the worker ends (pools start
+    replacement workers from helper threads), and a forkserver worker's parent is the server.
+
+    Call it as a pool's ``initializer`` (with ``initargs=(os.getpid(),)``) or from one.
+    """
+    ppid = os.getppid()
+
+    def orphaned() -> bool:
+        return os.getppid() != ppid or (parent is not None and not process_alive(parent))
+
+    def watch() -> None:
+        while not orphaned():
+            time.sleep(interval)
+        os._exit(ORPHAN_EXIT)
+
+    thread = threading.Thread(target=watch, name="seqshape-parent-watchdog", daemon=True)
+    thread.start()
+    return thread
+
+
+def _init_worker(parent: int, initializer: Callable | None, initargs: tuple) -> None:
+    """Worker start: die with ``parent`` (:func:`watch_parent`), ignore SIGINT (the parent
+    handles Ctrl-C), then the caller's initializer."""
+    watch_parent(parent)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if initializer is not None:
         initializer(*initargs)
@@ -157,7 +221,8 @@ def run_pool(fn: Callable, units: Sequence, workers: int = 1, *,
     ``initializer``, the units and results must pickle). The progress bar advances by
     ``weight(u, result)`` per finished unit (1 when None) up to ``total`` (``len(units)`` when
     None); ``progress_bar`` None follows :func:`seqshape._progress.progress`'s default.
-    Ctrl-C terminates the workers and re-raises :class:`KeyboardInterrupt`.
+    Ctrl-C terminates the workers and re-raises :class:`KeyboardInterrupt`; the workers end
+    themselves when this process dies (:func:`watch_parent`).
     """
     if workers < 1:
         raise ConfigError(f"workers must be >= 1, got {workers}")
@@ -181,7 +246,8 @@ def run_pool(fn: Callable, units: Sequence, workers: int = 1, *,
 
 def _pooled(fn, units, workers, initializer, initargs, bar, step) -> Iterator:
     ctx = multiprocessing.get_context("spawn")
-    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(initializer, initargs))
+    pool = ctx.Pool(workers, initializer=_init_worker,
+                    initargs=(os.getpid(), initializer, initargs))
     try:
         indexed = list(enumerate(units))
         for j, result in pool.imap_unordered(_Indexed(fn), indexed, chunksize=1):

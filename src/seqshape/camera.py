@@ -288,7 +288,10 @@ def read_calib(path: str | Path, image_size: tuple[int, int] = KITTI_IMAGE_SIZE)
 
     ``P2``, ``R_rect`` and ``Tr_velo_cam`` are required; a missing P0/P1/P3 is filled with P2
     and a missing ``Tr_imu_velo`` with the identity. Unknown keys (``Tr_cam_to_road`` ...) are
-    ignored. Malformed lines raise :class:`DataError` naming the file and line.
+    ignored. Malformed lines raise :class:`DataError` naming the file and line: a wrong count,
+    a non-numeric or non-finite value, a duplicate key, an ``R_rect`` or a rotation block of
+    ``Tr_velo_cam`` / ``Tr_imu_velo`` that is not a rotation (:func:`rotation_problem`), a
+    translation beyond 100 m, or a projection matrix whose intrinsic block is singular.
     """
     path = Path(path)
     text = read_text(path, "calibration file")
@@ -312,6 +315,9 @@ def read_calib(path: str | Path, image_size: tuple[int, int] = KITTI_IMAGE_SIZE)
             raise DataError(path, f"{key}: non-finite value", line=lineno)
         if canon in values:
             raise DataError(path, f"{key}: duplicate key", line=lineno)
+        problem = _matrix_problem(canon, nums)
+        if problem:
+            raise DataError(path, f"{key}: {problem}", line=lineno)
         values[canon] = nums
     missing = [k for k in _REQUIRED if k not in values]
     if missing:
@@ -320,6 +326,50 @@ def read_calib(path: str | Path, image_size: tuple[int, int] = KITTI_IMAGE_SIZE)
         values.setdefault(cam, values["P2"])
     values.setdefault("Tr_imu_velo", np.eye(4)[:3].ravel())
     return KittiCalib(image_size=image_size, **values)
+
+
+#: A rotation read from a calibration file must satisfy ``|R^T R - I| <= 1e-3`` (each entry)
+#: and ``|det R - 1| <= 1e-3``; the published KITTI matrices (7 significant digits) are within
+#: 1e-6.
+ROTATION_TOLERANCE = 1e-3
+
+#: Largest translation (m) of ``Tr_velo_cam`` / ``Tr_imu_velo``: sensors of one vehicle.
+MAX_SENSOR_OFFSET = 100.0
+
+#: Largest condition number of the intrinsic (left 3x3) block of a projection matrix.
+MAX_CONDITION = 1e10
+
+
+def rotation_problem(r) -> str | None:
+    """Why ``r`` (3, 3) is not a rotation (orthonormal, det +1 within
+    :data:`ROTATION_TOLERANCE`), or None.
+
+    >>> rotation_problem(np.eye(3)) is None, rotation_problem(np.diag([1.0, 1.0, 0.0]))
+    (True, 'not a rotation: max |R^T R - I| = 1, det = 0')
+    """
+    r = np.asarray(r, dtype=np.float64).reshape(3, 3)
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: inf/nan, refused below
+        err = float(np.abs(r.T @ r - np.eye(3)).max())
+        det = float(np.linalg.det(r))
+    if err <= ROTATION_TOLERANCE and abs(det - 1) <= ROTATION_TOLERANCE:
+        return None
+    return f"not a rotation: max |R^T R - I| = {err:.3g}, det = {det:.3g}"
+
+
+def _matrix_problem(key: str, nums: np.ndarray) -> str | None:
+    """Why the (finite) values of calibration entry ``key`` are not usable, or None."""
+    if key == "R_rect":
+        return rotation_problem(nums)
+    m = nums.reshape(3, 4)
+    if key.startswith("P"):
+        cond = np.linalg.cond(m[:, :3])
+        if not cond <= MAX_CONDITION:
+            return f"the intrinsic block P[:, :3] is singular (condition number {cond:.3g})"
+        return None
+    problem = rotation_problem(m[:, :3])
+    if problem is None and np.abs(m[:, 3]).max() > MAX_SENSOR_OFFSET:
+        problem = f"translation {m[:, 3].tolist()} is beyond {MAX_SENSOR_OFFSET:g} m"
+    return problem
 
 
 def _fmt(v: float) -> str:

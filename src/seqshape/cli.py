@@ -3,14 +3,21 @@
 Each script module defines ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``.
 Modules are imported only when their command runs, so ``seqshape --help`` is instant. Every
 option's help shows its default (:class:`HelpFormatter`).
+
+Errors end in one line on stderr and exit status 1, never a traceback: a
+:class:`~seqshape.errors.SeqshapeError` (bad data or options), and an ``OSError`` such as an
+output folder that cannot be written (read-only, permission denied, disk full), which names the
+path (``-v`` adds the traceback). Ctrl-C exits with 130.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import sys
+from types import ModuleType
 
 from seqshape._version import __version__
 from seqshape.errors import SeqshapeError
@@ -36,27 +43,75 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 class HelpFormatter(argparse.HelpFormatter):
     """Appends ``(default: X)`` to an option's help unless the help already says its default
-    (the options of a config dataclass, or a default in words); switches have none."""
+    (the options of a config dataclass, or a default in words); a switch (an option without a
+    value) shows ``(default: off)``: it is off unless given."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if ("default" in text or action.default in (None, argparse.SUPPRESS) or action.nargs == 0
-                or not action.option_strings):
+        if ("default" in text.lower() or not action.option_strings or action.required
+                or isinstance(action, (argparse._HelpAction, argparse._VersionAction))):
+            return text
+        if action.nargs == 0:
+            return text + " (default: off)"
+        if action.default in (None, argparse.SUPPRESS):
             return text
         return text + " (default: %(default)s)"
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The top-level parser: ``--version``, ``-v`` and one sub-parser per command (whose
+    options :func:`command_parser` adds when the command runs)."""
     parser = argparse.ArgumentParser(
-        prog="seqshape",
+        prog="seqshape", formatter_class=HelpFormatter,
         description="Sequential joint shape and pose estimation of vehicles from LiDAR, "
                     "and automatic amodal segmentation labels.")
     parser.add_argument("--version", action="version", version=f"seqshape {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="debug logging, and the traceback of an I/O error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, help_) in COMMANDS.items():
         sub.add_parser(name, help=help_, add_help=False)
     return parser
+
+
+def command_parser(name: str) -> tuple[ModuleType, argparse.ArgumentParser]:
+    """The script module of command ``name`` and its parser (its options, help with defaults)."""
+    module_name, help_ = COMMANDS[name]
+    module = importlib.import_module(f"seqshape.scripts.{module_name}")
+    parser = argparse.ArgumentParser(prog=f"seqshape {name}",
+                                     description=getattr(module, "HELP", help_),
+                                     formatter_class=HelpFormatter)
+    module.add_arguments(parser)
+    return module, parser
+
+
+#: what an OSError's errno means for the user, beside the system's own words
+_OS_HINTS = {errno.EACCES: "no permission: choose a folder you can write, e.g. another --out",
+             errno.EPERM: "no permission: choose a folder you can write, e.g. another --out",
+             errno.EROFS: "read-only file system: choose another --out",
+             errno.ENOSPC: "the disk is full: free some space or choose another --out, then "
+                           "rerun the same command to resume",
+             errno.EDQUOT: "disk quota exceeded: free some space or choose another --out"}
+
+
+def os_error_line(exc: OSError, out: object = None) -> str:
+    """One line for an ``OSError``: the path(s), the system's words and what to do.
+
+    A failed ``write`` (a full disk) carries no file name: then the line names ``out``, the
+    command's output (its ``--out``), when given.
+
+    >>> import errno
+    >>> os_error_line(PermissionError(errno.EACCES, "Permission denied", "out/a.json"))
+    'out/a.json: Permission denied (no permission: choose a folder you can write, ...)'
+    >>> os_error_line(OSError(errno.ENOSPC, "No space left on device"), out="runs/a")
+    'writing to runs/a: No space left on device (the disk is full: ...)'
+    """
+    words = exc.strerror or str(exc) or type(exc).__name__
+    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
+    where = (" -> ".join(paths) if paths else f"writing to {out}" if out is not None
+             else "")
+    hint = _OS_HINTS.get(exc.errno)
+    return (f"{where}: " if where else "") + words + (f" ({hint})" if hint else "")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,12 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     if head.command is None:
         parser.print_help()
         return 2
-    module_name, help_ = COMMANDS[head.command]
-    module = importlib.import_module(f"seqshape.scripts.{module_name}")
-    sub = argparse.ArgumentParser(prog=f"seqshape {head.command}",
-                                  description=getattr(module, "HELP", help_),
-                                  formatter_class=HelpFormatter)
-    module.add_arguments(sub)
+    module, sub = command_parser(head.command)
     args = sub.parse_args(rest)
     logging.basicConfig(level=logging.DEBUG if head.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
@@ -80,6 +130,11 @@ def main(argv: list[str] | None = None) -> int:
         return int(module.run(args) or 0)
     except SeqshapeError as exc:
         print(f"seqshape {head.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:  # unwritable output, disk full...: the path, not a traceback
+        logging.getLogger("seqshape.cli").debug("traceback of the error below", exc_info=True)
+        print(f"seqshape {head.command}: error: {os_error_line(exc, getattr(args, 'out', None))}",
+              file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"seqshape {head.command}: interrupted; rerun the same command to resume",

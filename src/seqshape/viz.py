@@ -3,9 +3,13 @@ and of one scene frame with its amodal ground truth (:func:`draw_scene_frame`).
 
 The PNG has a bird's-eye view of the trajectory with the points of every frame (sensor frame,
 coloured by frame), the number of points per frame over time, and the complete ground-truth
-shape from the top, the side and the front (canonical frame). The HTML holds the whole
+shape from the top, the side and the front (canonical frame); each colour scale has a colour
+bar. The HTML holds the whole
 plotly.js library (it works offline) and shows one frame at a time on a slider: that frame's
 points, the complete shape placed with the frame's ground-truth pose, and the trajectory.
+The scene figure's image is drawn as the labeller's overlays (:mod:`seqshape.amodal.overlay`:
+one colour and one tag per track, a legend), with the same colours and track ids on its
+bird's-eye view.
 """
 
 from __future__ import annotations
@@ -15,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from seqshape._io import atomic_write_bytes
+from seqshape._io import atomic_write_bytes, atomic_write_text
+from seqshape.amodal.overlay import OverlayInstance, draw_overlay, track_colour
 from seqshape.data.kins import annotations_by_image, read_kins, segm_to_mask
 from seqshape.data.kitti import KittiTrackingSequence
 from seqshape.data.track import Track
@@ -30,14 +35,27 @@ def _footprint(track: Track, t: int) -> np.ndarray:
 
 
 def plot_track_png(track: Track, path: str | Path, dpi: int = 110) -> Path:
-    """Write the PNG overview of ``track`` to ``path``; returns the path."""
+    """Write the PNG overview of ``track`` (:func:`track_overview`) to ``path``; returns the
+    path."""
+    import matplotlib.pyplot as plt  # heavy: plotting only
+
+    path = Path(path)
+    fig = track_overview(track)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+    return path
+
+
+def track_overview(track: Track):
+    """The matplotlib figure of :func:`plot_track_png` (module doc); every colour scale has a
+    colour bar (frame; the coordinate seen end-on in each view of the complete shape)."""
     import matplotlib  # heavy: plotting only
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # heavy: plotting only
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig = plt.figure(figsize=(15, 8.5))
     gs = fig.add_gridspec(2, 3, height_ratios=[1.4, 1.0])
     _bev(fig.add_subplot(gs[0, :2]), track)
@@ -50,12 +68,11 @@ def plot_track_png(track: Track, path: str | Path, dpi: int = 110) -> Path:
                  f"{m.get('sensor', '?')}, split {m.get('split', '?')}  |  {len(track)} frames,"
                  f" {int(track.num_points.sum())} points")
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+    return fig
 
 
 def _bev(ax, track: Track) -> None:
+    import matplotlib  # heavy: plotting only
     import matplotlib.pyplot as plt  # heavy: plotting only
 
     known = ~np.isnan(track.poses).any(1)
@@ -76,6 +93,8 @@ def _bev(ax, track: Track) -> None:
     ax.set_title("bird's-eye view, sensor frame (colour: frame)")
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
+    frames = matplotlib.cm.ScalarMappable(matplotlib.colors.Normalize(0, n), cmap)
+    ax.figure.colorbar(frames, ax=ax, label="frame", fraction=0.04, pad=0.01)
 
 
 def _counts(ax, track: Track) -> None:
@@ -101,14 +120,23 @@ def _shape_view(ax, track: Track, name: str, i: int, j: int) -> None:
         ax.text(0.5, 0.5, "no complete shape", ha="center", va="center", transform=ax.transAxes)
     else:
         c = track.complete
-        order = np.argsort(c[:, 3 - i - j])  # draw far points first
-        ax.scatter(c[order, i], c[order, j], s=2, c=c[order, 3 - i - j], cmap="coolwarm",
-                   linewidths=0)
+        k = 3 - i - j  # the axis seen end-on
+        order = np.argsort(c[:, k])  # draw far points first
+        dots = ax.scatter(c[order, i], c[order, j], s=2, c=c[order, k], cmap="coolwarm",
+                          linewidths=0)
+        ax.figure.colorbar(dots, ax=ax, label=f"{labels[k]} (m)", fraction=0.05, pad=0.02)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel(f"{labels[i]} (m)")
     ax.set_ylabel(f"{labels[j]} (m)")
     ax.set_title(f"complete shape, {name}")
     ax.grid(alpha=0.3)
+
+
+# The HTML view's layout: margins and a slider inset from the sides so that the first and last
+# slider labels and the axis titles of the 3D scene are not cut at the page edge.
+_HTML_MARGIN = dict(l=40, r=40, t=50, b=40)
+_SCENE_DOMAIN = dict(x=[0.02, 0.98], y=[0.08, 1.0])
+_SLIDER_PLACE = dict(x=0.06, len=0.88, xanchor="left", y=0.0, yanchor="top")
 
 
 def track_html(track: Track, path: str | Path, max_frames: int = 100,
@@ -143,9 +171,9 @@ def track_html(track: Track, path: str | Path, max_frames: int = 100,
                                        marker=dict(size=1.5, color="orange", opacity=0.5)))
     fig.update_layout(sliders=[_slider(fig, track, frames)], title=f"{track.track_id}",
                       scene=dict(aspectmode="data", xaxis_title="x (m)", yaxis_title="y (m)",
-                                 zaxis_title="z (m)"),
-                      margin=dict(l=0, r=0, t=40, b=0))
-    fig.write_html(str(path), include_plotlyjs=True, full_html=True)
+                                 zaxis_title="z (m)", domain=_SCENE_DOMAIN),
+                      margin=_HTML_MARGIN)
+    atomic_write_text(path, fig.to_html(include_plotlyjs=True, full_html=True))
     return path
 
 
@@ -164,42 +192,41 @@ def _slider(fig, track: Track, frames: np.ndarray) -> dict:
     steps = [dict(method="update", label=f"{t} ({len(track.points[t])} pts)",
                   args=[{"visible": ((owner == -1) | (owner == k)).tolist()}])
              for k, t in enumerate(frames)]
-    return dict(active=0, steps=steps, currentvalue=dict(prefix="frame "), pad=dict(t=30))
+    return dict(active=0, steps=steps, currentvalue=dict(prefix="frame "), pad=dict(t=30),
+                **_SLIDER_PLACE)
 
 
 # ----------------------------------------------------------------------------- scene frames
 
 
-def _scene_palette(i: int) -> np.ndarray:
-    import matplotlib  # heavy: plotting only
+def _rgb(track) -> np.ndarray:
+    """The overlay colour of ``track`` (:func:`seqshape.amodal.overlay.track_colour`) as RGB
+    in [0, 1], for matplotlib."""
+    b, g, r = track_colour(track)
+    return np.array([r, g, b], dtype=np.float64) / 255.0
 
-    return np.asarray(matplotlib.colormaps["tab20"](i % 20)[:3])
+
+def _depth(ann: dict) -> float:
+    """An annotation's ``depth`` (m), inf when absent or not a finite number."""
+    d = ann.get("depth")
+    ok = isinstance(d, (int, float)) and not isinstance(d, bool) and np.isfinite(d)
+    return float(d) if ok else np.inf
 
 
-def _draw_scene_image(ax, image: np.ndarray, anns: list[dict]) -> None:
-    import cv2  # heavy: only the scene figure needs OpenCV
-
-    img = image.astype(np.float64) / 255.0
-    h, w = image.shape[:2]
-    outlines = []
-    for ann in anns:
-        c = _scene_palette(int(ann.get("track_id", 0)))
-        vis = segm_to_mask(ann["i_segm"], h, w)
-        img[vis] = 0.45 * img[vis] + 0.55 * c
-        amodal = segm_to_mask(ann["a_segm"], h, w).astype(np.uint8)
-        contours, _ = cv2.findContours(amodal, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        outlines.append((contours, c, vis, ann))
-    ax.imshow(np.clip(img, 0, 1))
-    for contours, c, vis, ann in outlines:
-        for cnt in contours:
-            pts = cnt[:, 0, :]
-            ax.plot(np.r_[pts[:, 0], pts[0, 0]], np.r_[pts[:, 1], pts[0, 1]], "-", color=c, lw=1.2)
-        rows, cols = np.nonzero(vis)
-        if len(rows):
-            ax.text(cols.mean(), rows.mean(), f"{ann['oco_id']}.{ann['ico_id']}", color="white",
-                    fontsize=8, ha="center", va="center", weight="bold",
-                    bbox={"facecolor": c, "alpha": 0.8, "pad": 1, "lw": 0})
-    ax.set_axis_off()
+def scene_instances(anns: list[dict], height: int, width: int
+                    ) -> tuple[list[OverlayInstance], list[int | None]]:
+    """The KINS annotations of one image as
+    :class:`~seqshape.amodal.overlay.OverlayInstance` (``order``: rank of the annotation's ``depth``, 0 = nearest; annotations without a depth
+    come last, in file order) and their ``track_id`` (None when absent)."""
+    depth = [_depth(a) for a in anns]
+    ranks = np.empty(len(anns), dtype=np.int64)
+    ranks[np.argsort(depth, kind="stable")] = np.arange(len(anns))
+    insts = []
+    for a, r in zip(anns, ranks, strict=True):
+        insts.append(OverlayInstance(str(a.get("track_id", "")),
+                                     segm_to_mask(a["a_segm"], height, width),
+                                     segm_to_mask(a["i_segm"], height, width), int(r)))
+    return insts, [a.get("track_id") for a in anns]
 
 
 def _draw_scene_bev(ax, points: np.ndarray, boxes, camera, extent: float) -> None:
@@ -212,12 +239,13 @@ def _draw_scene_bev(ax, points: np.ndarray, boxes, camera, extent: float) -> Non
     for tid, pose, size in boxes:
         c = box_corners(size, pose)[:4]
         ring = np.r_[c, c[:1]]
-        col = _scene_palette(tid)
+        col = _rgb(tid)
         ax.plot(-ring[:, 1], ring[:, 0], "-", color=col, lw=1.2)
         front = (c[0] + c[3]) / 2
         ax.plot([-pose[1], -front[1]], [pose[0], front[0]], "-", color=col, lw=1.0)
         ax.text(-pose[1], pose[0], str(tid), fontsize=7, color="black", ha="center",
-                clip_on=True)
+                va="center", clip_on=True,
+                bbox={"facecolor": col, "alpha": 0.85, "pad": 1, "lw": 0})
     w = camera.width
     fx, cx = camera.K[0, 0], camera.K[0, 2]
     for u in (0.0, w - 1.0):  # field-of-view rays (velodyne y = -camera x)
@@ -232,13 +260,27 @@ def _draw_scene_bev(ax, points: np.ndarray, boxes, camera, extent: float) -> Non
 
 
 def draw_scene_frame(root: Path, sequence: str, frame: int, out: Path, extent: float = 50.0):
-    """Write the PNG figure of ``frame`` of ``sequence`` under ``root`` (``seqshape scenes``).
+    """Write the PNG figure of ``frame`` of ``sequence`` under ``root`` (``seqshape scenes``)
+    to ``out``: :func:`scene_figure`."""
+    import matplotlib.pyplot as plt  # heavy: plotting only
 
-    Left: the rendered image with every KINS instance's visible mask filled, its amodal
-    outline drawn, and ``cluster.order`` (KINS ``oco_id.ico_id``; order 1 is the front of its
-    cluster, ``0.0`` an instance that overlaps no other) written on it. Right: the LiDAR sweep
-    from above (colour = height) with the label_02 boxes and track ids, and the camera's
-    field of view (``extent`` metres ahead).
+    fig = scene_figure(root, sequence, frame, extent)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(out, buf.getvalue())
+
+
+def scene_figure(root: Path, sequence: str, frame: int, extent: float = 50.0):
+    """The matplotlib figure of ``frame`` of ``sequence`` under ``root`` (``seqshape scenes``).
+
+    Left: the rendered image drawn as the labeller's overlays
+    (:func:`seqshape.amodal.overlay.draw_overlay`): every KINS instance's visible mask filled
+    and its amodal outline drawn in its track's colour, tagged with its ``track_id``, and a
+    legend under the image with each instance's depth rank (0 = nearest, from the annotation's
+    ``depth``). Right: the LiDAR sweep from above (colour = height) with the label_02 boxes,
+    each in the same colour and with the same track id as in the image, and the camera's field
+    of view (``extent`` metres ahead).
     """
     import cv2  # heavy: only the scene figure needs OpenCV
     import matplotlib  # heavy: plotting only
@@ -246,6 +288,7 @@ def draw_scene_frame(root: Path, sequence: str, frame: int, out: Path, extent: f
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # heavy: plotting only
 
+    root = Path(root)
     seq = KittiTrackingSequence(root, sequence)
     if not seq.frames:
         raise DataError(root, f"no sequence {seq.sequence} here (found "
@@ -257,21 +300,24 @@ def draw_scene_frame(root: Path, sequence: str, frame: int, out: Path, extent: f
     image = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
     if image is None:
         raise DataError(img_path, "missing or unreadable image")
-    kins_path = Path(root) / "amodal" / f"{seq.sequence}.json"
-    doc = read_kins(kins_path)
-    by_image = annotations_by_image(doc)
+    doc = read_kins(root / "amodal" / f"{seq.sequence}.json")
     image_id = next((im["id"] for im in doc["images"] if im.get("frame", im["id"]) == frame), None)
-    anns = by_image.get(image_id, [])
-    boxes = [(int(b.track_id), b.pose, b.size) for b in seq.boxes(frame)]
+    anns = annotations_by_image(doc).get(image_id, [])
+    boxes = [(_box_track(b.track_id), b.pose, b.size) for b in seq.boxes(frame)]
+    insts, tracks = scene_instances(anns, *image.shape[:2])
     fig = plt.figure(figsize=(16, 5.2))
     ax_img = fig.add_axes([0.01, 0.05, 0.70, 0.9])
     ax_bev = fig.add_axes([0.75, 0.08, 0.23, 0.86])
-    _draw_scene_image(ax_img, image[:, :, ::-1], anns)
+    ax_img.imshow(draw_overlay(image, insts, tracks)[:, :, ::-1])  # BGR -> RGB
+    ax_img.set_axis_off()
     ax_img.set_title(f"{root.name} sequence {seq.sequence} frame {frame}: visible masks filled, "
-                     f"amodal outlines, occlusion cluster.order", fontsize=9)
+                     f"amodal outlines, tag = track id (legend below)", fontsize=9)
     _draw_scene_bev(ax_bev, seq.points(frame), boxes, seq.camera(), extent)
-    ax_bev.set_title("LiDAR (grey: ground, colour: z) and label_02 boxes", fontsize=9)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write_bytes(out, buf.getvalue())
+    ax_bev.set_title("LiDAR (grey: ground, colour: z) and label_02 boxes (track id)",
+                     fontsize=9)
+    return fig
+
+
+def _box_track(track_id: str) -> int | str:
+    """A label_02 track id as the KINS files store it (an integer when it is one)."""
+    return int(track_id) if track_id.lstrip("-").isdigit() else track_id

@@ -16,11 +16,15 @@ known, its distance (m); the metrics are broken down by :data:`OCCLUSION_BINS` a
 :data:`DISTANCE_BINS`.
 
 :func:`write_mask_report` is ``seqshape evaluate-masks``: it scores label files paired by
-:func:`resolve_pairs` and writes ``metrics.json``, ``instances.json`` and ``metrics.md``.
+:func:`resolve_pairs` and writes ``metrics.json``, ``instances.json`` and ``metrics.md``, whose
+title says what the labels were compared with (:func:`reference_kind`: the exact ground truth
+of a ``seqshape scenes`` folder, or a reference) and whose row is named after the prediction
+files (:func:`default_row_name`) unless a name is given.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -31,7 +35,8 @@ from scipy.optimize import linear_sum_assignment
 from seqshape._io import atomic_write_json, atomic_write_text
 from seqshape.data.kins import annotation_mask, read_kins
 from seqshape.data.kitti import read_labels
-from seqshape.errors import ConfigError
+from seqshape.errors import ConfigError, DataError
+from seqshape.sim.scene_writer import SCENE_FORMAT, SETTINGS_FILE
 
 IOU_THRESHOLD = 0.5
 #: occlusion fraction bins (label, low, high): low <= occ < high
@@ -157,7 +162,8 @@ def results_to_records(results: Sequence[InstanceResult]) -> list[dict]:
     return [{**asdict(r), "missed": r.missed} for r in results]
 
 
-def markdown_table(rows: dict[str, dict], title: str = "Amodal mask consistency") -> str:
+def markdown_table(rows: dict[str, dict], title: str = "Amodal masks against the reference"
+                   ) -> str:
     """A Table II-style markdown table: one row per method/label set, % miss and mIoU columns."""
     lines = [f"**{title}**", "",
              "| Method | Instances | % Miss | mIoU | mIoU (misses = 0) | Unmatched preds |",
@@ -227,6 +233,7 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
     unmatched = 0
     for pred_path, gt_path in pairs:
         pred_doc, gt_doc = read_kins(pred_path), read_kins(gt_path)
+        _check_image_sizes(pred_doc, gt_doc, pred_path, gt_path)
         dists = distances_from_labels(gt_path)
 
         def keep(a):
@@ -261,7 +268,51 @@ def evaluate_files(pairs: Sequence[tuple], category_ids: Sequence[int] | None = 
     return results, unmatched
 
 
+def _check_image_sizes(pred_doc: dict, gt_doc: dict, pred_path, gt_path) -> None:
+    """:class:`DataError` when an image (matched by ``file_name``) has another size in the
+    prediction than in the reference: masks of different sizes cannot be compared."""
+    gt_size = {img["file_name"]: (int(img["width"]), int(img["height"]))
+               for img in gt_doc["images"]}
+    for img in pred_doc["images"]:
+        ref = gt_size.get(img["file_name"])
+        size = (int(img["width"]), int(img["height"]))
+        if ref is not None and ref != size:
+            raise DataError(pred_path, f"image {img['file_name']!r} is {size[0]}x{size[1]} "
+                                       f"(width x height) here but {ref[0]}x{ref[1]} in the "
+                                       f"reference {gt_path}: predictions and reference must "
+                                       "be of the same images")
+
+
 # ----------------------------------------------------------------------------- report
+
+
+def reference_kind(gts: Sequence[Path]) -> str:
+    """``"exact ground truth"`` when every reference file is ``ROOT/amodal/SSSS.json`` of a
+    ``seqshape scenes`` folder (``ROOT/scene.json`` of format ``seqshape-scenes``: its masks
+    are rendered, exact), else ``"the reference"``."""
+    def is_scenes(gt: Path) -> bool:
+        settings = Path(gt).parent.parent / SETTINGS_FILE
+        try:
+            doc = json.loads(settings.read_text(encoding="utf-8"))
+        except (OSError, ValueError):  # no settings file, unreadable or not JSON
+            return False
+        return Path(gt).parent.name == "amodal" and isinstance(doc, dict) and \
+            doc.get("format") == SCENE_FORMAT
+
+    return "exact ground truth" if gts and all(is_scenes(g) for g in gts) else "the reference"
+
+
+def default_row_name(preds: Sequence[Path]) -> str:
+    """The table row of the predictions ``preds`` (files or folders): the name of one file,
+    or of one folder (``labels/``); the folder's name for files of one folder; else the names
+    joined by ``+``."""
+    preds = list(dict.fromkeys(Path(p) for p in preds))
+    if len(preds) == 1:
+        return preds[0].name + ("/" if preds[0].is_dir() else "")
+    parents = {p.parent for p in preds}
+    if len(parents) == 1:
+        return f"{parents.pop().name}/"
+    return " + ".join(p.name for p in preds)
 
 
 def resolve_pairs(preds: Sequence[Path], gts: Sequence[Path]) -> list[tuple[Path, Path]]:
@@ -296,8 +347,8 @@ def resolve_pairs(preds: Sequence[Path], gts: Sequence[Path]) -> list[tuple[Path
     return pairs
 
 
-def write_mask_report(pairs: Sequence[tuple[Path, Path]], out: str | Path, name: str = "labels",
-                      categories: Sequence[int] | None = None,
+def write_mask_report(pairs: Sequence[tuple[Path, Path]], out: str | Path,
+                      name: str | None = None, categories: Sequence[int] | None = None,
                       max_distance: float | None = None) -> str:
     """Score ``pairs`` (:func:`evaluate_files`) and write the report under ``out``.
 
@@ -306,12 +357,16 @@ def write_mask_report(pairs: Sequence[tuple[Path, Path]], out: str | Path, name:
     ``within_max_distance``, the metrics over the reference instances at most that far
     (:func:`within_distance`; the matching still uses every instance).
     ``out/instances.json``: :func:`results_to_records`. ``out/metrics.md``: the markdown
-    tables (a row ``name``, and ``name (<= M m)`` with ``max_distance``), also returned.
+    tables, also returned: titled "Amodal masks against exact ground truth" or "... against
+    the reference" (:func:`reference_kind`), a row ``name`` (default
+    :func:`default_row_name` of the prediction files) and ``name (<= M m)`` with
+    ``max_distance``, a line under the table naming the files compared, the breakdowns.
     ``categories`` restricts the scoring to those category ids (default: all).
     """
     if max_distance is not None and not max_distance > 0:
         raise ConfigError(f"--max-distance must be > 0, got {max_distance}")
     out = Path(out)
+    name = name or default_row_name([p for p, _ in pairs])
     results, unmatched = evaluate_files(pairs, categories)
     metrics = summarise(results, unmatched)
     bd = breakdown(results)
@@ -326,6 +381,19 @@ def write_mask_report(pairs: Sequence[tuple[Path, Path]], out: str | Path, name:
                       {**metrics, **extra, "breakdown": bd, "iou_threshold": IOU_THRESHOLD,
                        "pairs": [[str(p), str(g)] for p, g in pairs]})
     atomic_write_json(out / "instances.json", results_to_records(results), indent=None)
-    table = markdown_table(rows) + "\n" + breakdown_table(bd)
+    table = (markdown_table(rows, title=f"Amodal masks against {_kind(pairs)}")
+             + "\n" + _compared(pairs) + "\n" + breakdown_table(bd))
     atomic_write_text(out / "metrics.md", table)
     return table
+
+
+def _kind(pairs: Sequence[tuple[Path, Path]]) -> str:
+    """What the predictions of ``pairs`` were compared with, for the title."""
+    return reference_kind([Path(g) for _, g in pairs])
+
+
+def _compared(pairs: Sequence[tuple[Path, Path]]) -> str:
+    """A line naming the files compared (the first three pairs, then a count)."""
+    shown = [f"`{p}` against `{g}`" for p, g in pairs[:3]]
+    more = f" and {len(pairs) - 3} more pairs" if len(pairs) > 3 else ""
+    return "Compared: " + "; ".join(shown) + more + ".\n"

@@ -31,7 +31,6 @@ JSON, one file per camera. Category ids of the gt modes come from
 
 from __future__ import annotations
 
-import colorsys
 import logging
 import time
 from dataclasses import dataclass, field
@@ -40,13 +39,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from seqshape._io import atomic_write_bytes
+from seqshape._io import contained_path
 from seqshape._progress import progress
 from seqshape.amodal.accumulate import gt_accumulation_clouds
 from seqshape.amodal.align import AlignConfig
 from seqshape.amodal.association import segment_sequence
 from seqshape.amodal.fallback import mask_instance
 from seqshape.amodal.masks import ORDERS, InstanceMask, frame_masks
+from seqshape.amodal.overlay import draw_overlay, write_overlays  # noqa: F401 (re-exported)
 from seqshape.amodal.refine import REFINE_MODES, TrackInput, complete_tracks
 from seqshape.data.categories import CLASS_TO_KINS
 from seqshape.data.crop import CropConfig
@@ -343,8 +343,8 @@ def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict):
     t0 = time.perf_counter()
     extra = None
     if cfg.mode == "sc-seg":
-        inst_path = Path(cfg.instances) if cfg.instances else (
-            Path(log.root) / "instances_2d" / f"{log.name}.json")
+        inst_path = Path(cfg.instances) if cfg.instances else contained_path(
+            Path(log.root) / "instances_2d", f"{log.name}.json", what="instance-mask file")
         unsupported: dict | None = {} if cfg.mask_fallback else None
         inputs = segment_sequence(log, inst_path, min_points=cfg.min_points, gate=cfg.gate,
                                   max_gap=cfg.max_gap if cfg.refine == "smooth" else 0,
@@ -485,51 +485,3 @@ def write_labels(path, result: LabelResult) -> None:
     """Write the KINS JSON of a :class:`LabelResult` (categories: KINS's plus bus 9 and
     trailer 10, :data:`~seqshape.data.categories.KINS_CATEGORIES`)."""
     write_kins(path, result.images, result.annotations)
-
-
-def _colour(k: int) -> tuple[int, int, int]:
-    """A distinct BGR colour per index (golden-ratio hues)."""
-    r, g, b = colorsys.hsv_to_rgb((k * 0.618034) % 1.0, 0.85, 1.0)
-    return int(255 * b), int(255 * g), int(255 * r)
-
-
-def draw_overlay(image: np.ndarray, insts: list[InstanceMask]) -> np.ndarray:
-    """The BGR ``image (h, w, 3)`` with visible masks tinted, amodal outlines and order ranks."""
-    import cv2  # lazy: OpenCV is heavy and only the overlays need it
-
-    out = image.copy()
-    for k, m in enumerate(sorted(insts, key=lambda m: -m.order)):  # back to front
-        col = np.array(_colour(k), dtype=np.float64)
-        out[m.visible] = (0.55 * out[m.visible] + 0.45 * col).astype(np.uint8)
-        contours, _ = cv2.findContours(m.amodal.astype(np.uint8), cv2.RETR_EXTERNAL,
-                                       cv2.CHAIN_APPROX_SIMPLE)
-        cv2.drawContours(out, contours, -1, _colour(k), 1)
-        ys, xs = np.nonzero(m.amodal)
-        cv2.putText(out, f"{m.track_id.split('_')[-1][:8]}:{m.order + 1}",
-                    (int(xs.min()), max(int(ys.min()) - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    _colour(k), 1, cv2.LINE_AA)
-    return out
-
-
-def write_overlays(log, result: LabelResult, out_dir, frames=None) -> list[Path]:
-    """Overlay PNGs ``OUT/<log>_FFFFFF.png`` of ``result``'s camera (the image, or black when
-    absent); returns the paths."""
-    import cv2  # lazy: OpenCV is heavy and only the overlays need it
-
-    out_dir = Path(out_dir)
-    camera = check_camera(log, result.camera)
-    paths = []
-    for frame in (log.frames if frames is None else frames):
-        img_path = log.image_path(frame, camera)
-        img = (cv2.imread(str(img_path), cv2.IMREAD_COLOR)
-               if img_path is not None and Path(img_path).is_file() else None)
-        if img is None:
-            cam = log.camera(camera, frame)
-            img = np.zeros((cam.height, cam.width, 3), np.uint8)
-        ok, buf = cv2.imencode(".png", draw_overlay(img, result.masks.get(frame, [])))
-        if not ok:
-            raise DataError(out_dir, f"could not encode the overlay of frame {frame}")
-        path = out_dir / f"{log.name}_{frame:06d}.png"
-        atomic_write_bytes(path, buf.tobytes())
-        paths.append(path)
-    return paths

@@ -44,7 +44,12 @@ under the rear axle. seqshape's **sensor frame** is the ego axes with the origin
 
 Errors: a missing folder or file, an unreadable table, a missing or null column, a wrong column
 type, a non-finite value, a sweep or image file name that is not a timestamp and a log without
-sweeps raise :class:`~seqshape.errors.DataError` naming the file and the problem. Category
+sweeps raise :class:`~seqshape.errors.DataError` naming the file and the problem; so do a
+quaternion whose norm is not 1 within 1e-3 (closer ones are normalised), a box dimension <= 0
+or above 30 m, a box centre more than 1 km from the sensor, a negative ``num_interior_pts``,
+a track twice at one timestamp, a sensor listed twice, a sensor more than 1 km from the ego
+origin, an ego pose beyond 10,000 km and a non-positive focal length. Sweep points holding a
+NaN or an infinity are dropped with one warning naming the file and the count. Category
 names outside the AV2 taxonomy get class None and one counted warning per log. Tables are read
 lazily: calibration on opening, annotations and ego poses once on first use, sweeps on demand.
 """
@@ -57,7 +62,15 @@ from pathlib import Path
 import numpy as np
 
 from seqshape.camera import PinholeCamera
-from seqshape.data.sequence import Box3D, DrivingLog
+from seqshape.data.sequence import (
+    MAX_RANGE,
+    MAX_WORLD,
+    Box3D,
+    DrivingLog,
+    box_problems,
+    drop_nonfinite_points,
+    unit_quaternions,
+)
 from seqshape.errors import ConfigError, DataError, require
 
 _log = logging.getLogger(__name__)
@@ -118,7 +131,7 @@ _INTRINSIC_COLUMNS = {"sensor_name": "str", "fx_px": "float", "fy_px": "float",
                       "cx_px": "float", "cy_px": "float", "k1": "float", "k2": "float",
                       "k3": "float", "height_px": "int", "width_px": "int"}
 _CITY_COLUMNS = {"timestamp_ns": "int", **{c: "float" for c in _POSE_COLUMNS}}
-_SWEEP_COLUMNS = {"x": "float", "y": "float", "z": "float", "intensity": "float"}
+_SWEEP_COLUMNS = {"x": "points", "y": "points", "z": "points", "intensity": "points"}
 
 
 def quaternion_to_matrix(q) -> np.ndarray:
@@ -148,24 +161,29 @@ def quaternion_to_yaw(q) -> np.ndarray:
     return np.arctan2(2 * (x * y + w * z), w * w + x * x - y * y - z * z)
 
 
-def pose_matrices(table: dict, path: Path) -> np.ndarray:
+def pose_matrices(table: dict, path: Path, limit: float = MAX_WORLD) -> np.ndarray:
     """``(N, 4, 4)`` transforms from the ``qw qx qy qz tx_m ty_m tz_m`` columns of a table read
-    from ``path`` (:class:`DataError` on a zero quaternion)."""
+    from ``path`` (:class:`DataError` on a quaternion whose norm is not 1 within 1e-3, or a
+    translation coordinate beyond ``limit`` m)."""
     q = _quaternions(table, path)
+    t = np.stack([table[c] for c in _POSE_COLUMNS[4:]], -1).astype(np.float64)
+    far = np.flatnonzero(np.abs(t).max(axis=-1, initial=0.0) > limit)
+    if len(far):
+        raise DataError(path, f"translation {t[far[0]].tolist()} (row {far[0]}) is beyond "
+                              f"{limit:g} m")
     m = np.zeros((len(q), 4, 4))
     m[:, :3, :3] = quaternion_to_matrix(q)
-    m[:, :3, 3] = np.stack([table[c] for c in _POSE_COLUMNS[4:]], -1)
+    m[:, :3, 3] = t
     m[:, 3, 3] = 1.0
     return m
 
 
 def _quaternions(table: dict, path: Path) -> np.ndarray:
-    """``(N, 4)`` the ``qw qx qy qz`` columns, checked to be non-zero."""
-    q = np.stack([table[c] for c in _POSE_COLUMNS[:4]], -1)
-    bad = np.flatnonzero(np.linalg.norm(q, axis=-1) == 0)
-    if len(bad):
-        raise DataError(path, f"zero quaternion (qw qx qy qz) in {len(bad)} row(s), first row "
-                              f"{bad[0]}")
+    """``(N, 4)`` the ``qw qx qy qz`` columns as stored; a quaternion whose norm is not 1 within
+    1e-3 is a :class:`DataError` (the others are normalised by :func:`quaternion_to_matrix`, and
+    :func:`quaternion_to_yaw` does not depend on the norm)."""
+    q = np.stack([table[c] for c in _POSE_COLUMNS[:4]], -1).reshape(-1, 4)
+    unit_quaternions(q, path, "quaternion (qw qx qy qz)")
     return q
 
 
@@ -196,8 +214,9 @@ def read_table(path: Path, columns: dict[str, str], what: str) -> dict[str, np.n
     """Read ``columns`` of a Feather table as numpy arrays, validated.
 
     ``columns`` maps a column to its kind: ``"int"`` (int64 array), ``"float"`` (finite
-    numbers, stored dtype kept) or ``"str"`` (object array of str). Any problem (missing or
-    unreadable file, missing column, nulls, wrong type, non-finite value) raises
+    numbers, stored dtype kept), ``"points"`` (numbers, non-finite allowed: the caller drops
+    those points) or ``"str"`` (object array of str). Any problem (missing or unreadable file,
+    missing column, nulls, wrong type, non-finite value, an integer beyond int64) raises
     :class:`DataError` naming ``path``.
     """
     feather = require("pyarrow.feather", "Argoverse 2 logs", "pyarrow")
@@ -206,11 +225,15 @@ def read_table(path: Path, columns: dict[str, str], what: str) -> dict[str, np.n
         raise DataError(path, f"missing {what}")
     try:
         table = feather.read_table(path, memory_map=False)
-    except (OSError, pa.ArrowException, ValueError) as exc:
-        raise DataError(path, f"cannot read {what} as a Feather table: {exc}") from None
-    missing = [c for c in columns if c not in table.column_names]
+        table.validate(full=True)  # offsets and lengths inside their buffers, UTF-8 strings
+        names = table.column_names
+    except (OSError, pa.ArrowException, ValueError, MemoryError) as exc:
+        # UnicodeDecodeError (a corrupt column name) is a ValueError
+        raise DataError(path, f"cannot read {what} as a Feather table: "
+                              f"{str(exc)[:300]}") from None
+    missing = [c for c in columns if c not in names]
     if missing:
-        raise DataError(path, f"{what}: missing column(s) {missing} (found {table.column_names})")
+        raise DataError(path, f"{what}: missing column(s) {missing} (found {names})")
     return {name: _column(path, table[name], name, kind, pa) for name, kind in columns.items()}
 
 
@@ -230,11 +253,44 @@ def _column(path: Path, col, name: str, kind: str, pa) -> np.ndarray:
         raise DataError(path, f"column {name}: expected numbers, got {typ}")
     values = col.to_numpy()
     if kind == "int":
+        if values.dtype == np.uint64 and len(values) and values.max() > np.iinfo(np.int64).max:
+            raise DataError(path, f"column {name}: integer {values.max()} beyond int64")
         return values.astype(np.int64)
+    if kind == "points":
+        return values
     if not np.all(np.isfinite(values)):
         bad = int(np.count_nonzero(~np.isfinite(values)))
         raise DataError(path, f"column {name}: {bad} non-finite value(s)")
     return values
+
+
+def _unique(names: np.ndarray, path: Path, column: str) -> None:
+    """A :class:`DataError` when ``names`` repeats a value."""
+    seen: set = set()
+    for name in names:
+        if name in seen:
+            raise DataError(path, f"{column} {name!r} appears twice")
+        seen.add(name)
+
+
+def _check_annotations(t: dict, centre: np.ndarray, size: np.ndarray, path: Path) -> None:
+    """Refuse absurd boxes, negative point counts and a track twice at one timestamp."""
+    bad, reasons = box_problems(centre, size)
+    if len(reasons):
+        i = int(np.flatnonzero(bad)[0])
+        raise DataError(path, f"row {i} (track {t['track_uuid'][i]}): {reasons[0]} "
+                              f"({len(reasons)} bad row(s))")
+    neg = np.flatnonzero(t["num_interior_pts"] < 0)
+    if len(neg):
+        raise DataError(path, f"row {neg[0]}: negative num_interior_pts "
+                              f"{t['num_interior_pts'][neg[0]]}")
+    seen: dict[tuple[int, str], int] = {}
+    for i, key in enumerate(zip(t["timestamp_ns"].tolist(), t["track_uuid"].tolist(),
+                                strict=True)):
+        first = seen.setdefault(key, i)
+        if first != i:
+            raise DataError(path, f"rows {first} and {i}: track {key[1]} twice at timestamp "
+                                  f"{key[0]}")
 
 
 def _timestamps(folder: Path, suffix: str) -> tuple[np.ndarray, list[Path]]:
@@ -242,7 +298,8 @@ def _timestamps(folder: Path, suffix: str) -> tuple[np.ndarray, list[Path]]:
     found = []
     for path in folder.glob(f"*{suffix}"):
         stem = path.name[: -len(suffix)]
-        if not stem.isdigit():
+        if not (stem.isascii() and stem.isdigit() and len(stem) <= 19
+                and int(stem) <= np.iinfo(np.int64).max):
             raise DataError(path, f"file name is not a timestamp in nanoseconds: {path.name}")
         found.append((int(stem), path))
     found.sort()
@@ -301,7 +358,9 @@ class Av2Log(DrivingLog):
     def _read_extrinsics(self) -> dict[str, np.ndarray]:
         path = self.path / EXTRINSICS
         table = read_table(path, _EXTRINSIC_COLUMNS, "sensor extrinsics")
-        poses = dict(zip(table["sensor_name"], pose_matrices(table, path), strict=True))
+        _unique(table["sensor_name"], path, "sensor_name")
+        poses = dict(zip(table["sensor_name"], pose_matrices(table, path, MAX_RANGE),
+                         strict=True))
         if LIDAR_NAME not in poses:
             raise DataError(path, f"no {LIDAR_NAME} row (sensors: {sorted(poses)})")
         return poses
@@ -312,8 +371,12 @@ class Av2Log(DrivingLog):
         if not path.is_file():
             return {}
         t = read_table(path, _INTRINSIC_COLUMNS, "camera intrinsics")
+        _unique(t["sensor_name"], path, "sensor_name")
         out = {}
         for i, name in enumerate(t["sensor_name"]):
+            if not (t["fx_px"][i] > 0 and t["fy_px"][i] > 0):
+                raise DataError(path, f"{name}: focal lengths must be positive, got "
+                                      f"{t['fx_px'][i]:g}, {t['fy_px'][i]:g}")
             k = np.array([[t["fx_px"][i], 0.0, t["cx_px"][i]], [0.0, t["fy_px"][i], t["cy_px"][i]],
                           [0.0, 0.0, 1.0]])
             size = (int(t["width_px"][i]), int(t["height_px"][i]))
@@ -328,6 +391,7 @@ class Av2Log(DrivingLog):
         yaw = quaternion_to_yaw(_quaternions(t, path))  # (R,)
         centre = np.stack([t["tx_m"], t["ty_m"], t["tz_m"]], -1) - self.lidar_offset  # (R, 3)
         size = np.stack([t["length_m"], t["width_m"], t["height_m"]], -1)  # (R, 3)
+        _check_annotations(t, centre, size, path)
         wanted = {int(ts): f for f, ts in enumerate(self.sweep_ns)}
         boxes: dict[int, list[Box3D]] = {f: [] for f in range(len(self.sweep_ns))}
         unknown: dict[str, int] = {}
@@ -381,12 +445,13 @@ class Av2Log(DrivingLog):
 
     def points(self, frame: int) -> np.ndarray:
         """``(N, 4)`` float32 ``x, y, z, intensity``, sensor frame (module doc)."""
-        t = read_table(self.sweep_path(frame), _SWEEP_COLUMNS, "LiDAR sweep")
+        path = self.sweep_path(frame)
+        t = read_table(path, _SWEEP_COLUMNS, "LiDAR sweep")
         xyz = np.stack([t["x"], t["y"], t["z"]], -1).astype(np.float64) - self.lidar_offset
         out = np.empty((len(xyz), 4), dtype=np.float32)
         out[:, :3] = xyz
         out[:, 3] = t["intensity"]
-        return out
+        return drop_nonfinite_points(out, path)
 
     def boxes(self, frame: int) -> list[Box3D]:
         self._ns(frame)

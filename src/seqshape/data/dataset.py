@@ -6,17 +6,24 @@ Manifest format ``seqshape-tracks`` version 1 (docs/data-format.md)::
      "created_by": "seqshape 0.1.0", "config": {...generator config...},
      "tracks": [{"track_id": "...", "split": "train", "file": "tracks/....npz",
                  "n_frames": 70, "n_points": 12345}, ...]}
+
+Reading checks the manifest before any track is opened (:func:`read_manifest`): UTF-8 JSON,
+an object of this format with an integer version this code understands, and a list of entries
+with a string ``track_id`` and a relative ``file`` that stays inside the dataset folder: no
+absolute path, no ``..``, and (checked again when a track is opened) no symlink that resolves
+outside the folder. Every refusal is a :class:`~seqshape.errors.DataError` naming the manifest.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from seqshape._io import atomic_write_json
+from seqshape._io import atomic_write_json, contained_path
 from seqshape._version import __version__
 from seqshape.data.track import Track, load_track, save_track
 from seqshape.errors import ConfigError, DataError
@@ -39,25 +46,10 @@ class TrackDataset:
             self.manifest = None
             self.entries = _entries
             return
-        mpath = self.path / MANIFEST
         if not self.path.is_dir():
             raise DataError(self.path, "no such dataset folder")
-        if not mpath.is_file():
-            raise DataError(mpath, "missing manifest: not a seqshape track dataset, or its "
-                                   "generation has not finished (rerun the same command)")
-        try:
-            self.manifest = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise DataError(mpath, f"invalid JSON ({exc})") from None
-        if self.manifest.get("format") != DATASET_FORMAT:
-            raise DataError(mpath, f"not a {DATASET_FORMAT} manifest")
-        if int(self.manifest.get("version", 0)) > DATASET_FORMAT_VERSION:
-            raise DataError(mpath, f"dataset format version {self.manifest['version']} is newer "
-                                   f"than this seqshape understands; upgrade")
-        self.entries = list(self.manifest.get("tracks", []))
-        for i, e in enumerate(self.entries):
-            if "track_id" not in e or "file" not in e:
-                raise DataError(mpath, f"track entry {i} lacks 'track_id' or 'file'")
+        self.manifest = read_manifest(self.path)
+        self.entries = list(self.manifest["tracks"])
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -65,7 +57,10 @@ class TrackDataset:
     def __getitem__(self, i: int) -> Track:
         if not -len(self) <= i < len(self):
             raise IndexError(f"track index {i} out of range for {len(self)} tracks")
-        return load_track(self.path / self.entries[i]["file"])
+        file = Path(self.entries[i]["file"])
+        if file.is_absolute():  # made absolute by union(), which checked it inside its folder
+            return load_track(file)
+        return load_track(_track_path(self.path, file))
 
     def __iter__(self) -> Iterator[Track]:
         for i in range(len(self)):
@@ -114,7 +109,7 @@ class TrackDataset:
                     raise DataError(p, f"track id {e['track_id']!r} is also in {seen[e['track_id']]}"
                                        f": datasets with shared ids cannot be joined")
                 seen[e["track_id"]] = p
-                entries.append({**e, "file": str((p / e["file"]).resolve())})
+                entries.append({**e, "file": str(_track_path(p, e["file"]).resolve())})
         return cls(paths[0], _entries=entries)
 
     def with_complete(self) -> TrackDataset:
@@ -128,6 +123,108 @@ class TrackDataset:
         return f"TrackDataset({str(self.path)!r}, {len(self)} tracks)"
 
 
+def read_manifest(folder: str | Path) -> dict[str, Any]:
+    """The checked ``manifest.json`` of a dataset folder (see the module doc).
+
+    Raises :class:`DataError` naming the manifest when it is missing, not UTF-8 JSON, not an
+    object of format ``seqshape-tracks``, of a version that is not an integer in
+    ``1..DATASET_FORMAT_VERSION``, or its ``tracks`` is not a list of valid entries
+    (:func:`check_entry`).
+    """
+    mpath = Path(folder) / MANIFEST
+    if not mpath.is_file():
+        raise DataError(mpath, "missing manifest: not a seqshape track dataset, or its "
+                               "generation has not finished (rerun the same command)")
+    manifest = _read_json(mpath)
+    if not isinstance(manifest, dict):
+        raise DataError(mpath, f"expected a JSON object, got {type(manifest).__name__}")
+    if manifest.get("format") != DATASET_FORMAT:
+        raise DataError(mpath, f"not a {DATASET_FORMAT} manifest (format "
+                               f"{manifest.get('format')!r})")
+    version = manifest.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise DataError(mpath, f"version must be a positive integer, got {version!r}")
+    if version > DATASET_FORMAT_VERSION:
+        raise DataError(mpath, f"dataset format version {version} is newer than this seqshape "
+                               f"understands; upgrade")
+    tracks = manifest.get("tracks")
+    if not isinstance(tracks, list):
+        raise DataError(mpath, f"'tracks' must be a list of entries, got "
+                               f"{type(tracks).__name__}")
+    seen: set[str] = set()
+    for i, entry in enumerate(tracks):
+        check_entry(entry, i, mpath)
+        if entry["track_id"] in seen:
+            raise DataError(mpath, f"track entry {i}: duplicate track_id {entry['track_id']!r}")
+        seen.add(entry["track_id"])
+    return manifest
+
+
+def _read_json(path: Path) -> Any:
+    """The JSON value in ``path``; :class:`DataError` for unreadable, non-UTF-8 or bad JSON."""
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise DataError(path, f"not UTF-8 text (byte {exc.start}): not a JSON file") from None
+    except OSError as exc:
+        raise DataError(path, f"unreadable file ({exc.strerror or exc})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise DataError(path, f"invalid JSON ({exc})") from None
+    except (ValueError, RecursionError) as exc:  # digits over Python's limit, deep nesting
+        raise DataError(path, f"invalid JSON ({type(exc).__name__}: {exc})") from None
+
+
+#: optional entry fields: what each must be (``split`` may be null in old manifests)
+_ENTRY_FIELDS = {"split": "a string or null", "n_frames": "a non-negative integer",
+                 "n_points": "a non-negative integer", "has_complete": "true or false"}
+
+
+def check_entry(entry: Any, i: int, mpath: Path) -> None:
+    """Check manifest entry ``i``: an object with a non-empty string ``track_id``, a ``file``
+    that is a relative path inside the folder (:func:`_relative_file`) and optional fields of
+    the right types (:data:`_ENTRY_FIELDS`); :class:`DataError` naming ``mpath`` otherwise."""
+    where = f"track entry {i}"
+    if not isinstance(entry, dict):
+        raise DataError(mpath, f"{where}: expected an object, got {type(entry).__name__}")
+    if "track_id" not in entry or "file" not in entry:
+        raise DataError(mpath, f"{where} lacks 'track_id' or 'file'")
+    if not isinstance(entry["track_id"], str) or not entry["track_id"]:
+        raise DataError(mpath, f"{where}: track_id must be a non-empty string, got "
+                               f"{entry['track_id']!r}")
+    _relative_file(entry["file"], f"{where}: file", mpath)
+    for key, want in _ENTRY_FIELDS.items():
+        if key in entry and not _field_ok(key, entry[key]):
+            raise DataError(mpath, f"{where}: {key} must be {want}, got {entry[key]!r}")
+
+
+def _field_ok(key: str, value: Any) -> bool:
+    """Is ``value`` what the optional entry field ``key`` must be (:data:`_ENTRY_FIELDS`)."""
+    if key == "split":
+        return value is None or isinstance(value, str)
+    if key == "has_complete":
+        return isinstance(value, bool)
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _relative_file(file: Any, where: str, mpath: Path) -> None:
+    """Refuse a manifest ``file`` that is not a plain relative path inside the folder: not a
+    string, empty, absolute, holding a ``..`` part or a NUL byte."""
+    if not isinstance(file, str) or not file.strip():
+        raise DataError(mpath, f"{where} must be a non-empty string, got {file!r}")
+    parts = file.replace("\\", "/").split("/")  # either separator, on any system
+    if "\0" in file or os.path.isabs(file) or file.startswith(("/", "\\")) or ".." in parts:
+        raise DataError(mpath, f"{where} {file!r} leaves the dataset folder: paths must be "
+                               "relative to it, without '..'")
+
+
+def _track_path(folder: Path, file: str | Path) -> Path:
+    """``folder / file`` of a manifest entry, refused when it resolves outside the dataset."""
+    return contained_path(folder, file, source=Path(folder) / MANIFEST, what="track file",
+                          folder_kind="dataset folder")
+
+
 def check_folder_settings(out: Path, config_file: str, cfg: dict, made: str) -> None:
     """Write ``OUT/config_file`` or check it matches ``cfg``: one folder, one set of settings.
 
@@ -136,10 +233,10 @@ def check_folder_settings(out: Path, config_file: str, cfg: dict, made: str) -> 
     """
     path = Path(out) / config_file
     if path.is_file():
-        try:
-            old = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise DataError(path, f"invalid JSON ({exc})") from None
+        old = _read_json(path)
+        if not isinstance(old, dict):
+            raise DataError(path, f"expected a JSON object of settings, got "
+                                  f"{type(old).__name__}")
         diff = sorted(k for k in set(old) | set(cfg) if old.get(k) != cfg.get(k))
         if diff:
             detail = ", ".join(f"{k}: {old.get(k)!r} there vs {cfg.get(k)!r} now" for k in diff)

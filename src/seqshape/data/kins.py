@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import graphlib
 import json
+import math
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -66,6 +67,15 @@ IMAGE_KEYS = ("id", "file_name", "height", "width")
 KINS_KEYS = ("id", "image_id", "category_id", "a_segm", "i_segm", "a_bbox", "i_bbox",
              "a_area", "i_area", "oco_id", "ico_id")
 COCO_KEYS = ("id", "image_id", "category_id", "segmentation")
+#: the largest image (height x width pixels) a file may declare: a bound against absurd sizes
+#: that would allocate gigabytes (8192 x 8192 fits)
+MAX_IMAGE_PIXELS = 1 << 26
+_MAX_GROUPS = 7  # 5-bit groups in one compressed run: 35 bits hold any difference of two runs
+
+
+class SegmentationError(ValueError):
+    """A malformed COCO segmentation (RLE or polygons); the readers turn it into a
+    :class:`~seqshape.errors.DataError` naming the file and the annotation."""
 
 
 def _mask_api():
@@ -149,16 +159,133 @@ def _rle_from_box(mask: np.ndarray, box) -> dict:
 
 
 def rle_to_mask(rle: dict) -> np.ndarray:
-    """Boolean (H, W) mask of a COCO RLE (compressed ``str``/``bytes`` or uncompressed list)."""
-    mu = _mask_api()
-    h, w = (int(v) for v in rle["size"])
+    """Boolean (H, W) mask of a COCO RLE (compressed ``str``/``bytes`` or uncompressed list).
+
+    The RLE is checked first (:func:`rle_runs`): a malformed one raises
+    :class:`SegmentationError` (a ``ValueError``), never decodes to garbage.
+    """
+    runs = rle_runs(rle)
+    h, w = _rle_size(rle)
     counts = rle["counts"]
     if isinstance(counts, list):
-        obj = mu.frPyObjects({"size": [h, w], "counts": counts}, h, w)
+        obj = _mask_api().frPyObjects({"size": [h, w], "counts": runs.tolist()}, h, w)
     else:
         obj = {"size": [h, w], "counts": counts.encode("ascii") if isinstance(counts, str)
-               else counts}
+               else bytes(counts)}
     return _decode(obj)
+
+
+def rle_runs(rle) -> np.ndarray:
+    """The run lengths ``(R,)`` int64 of a COCO RLE dict, checked.
+
+    ``counts`` is a list of non-negative integers (uncompressed RLE) or a COCO compressed
+    string (``str`` or ``bytes``, the LEB128-like code of ``pycocotools``' ``rleToString``);
+    the runs must add up to ``height * width`` exactly. Anything else raises
+    :class:`SegmentationError` saying what is wrong.
+
+    >>> rle_runs({"size": [2, 3], "counts": [1, 2, 3]}).tolist()
+    [1, 2, 3]
+    >>> rle_runs(mask_to_rle(np.eye(2, dtype=bool))).tolist()
+    [0, 1, 2, 1]
+    """
+    if not isinstance(rle, dict) or "size" not in rle or "counts" not in rle:
+        raise SegmentationError("an RLE is a dict with 'size' and 'counts'")
+    h, w = _rle_size(rle)
+    counts = rle["counts"]
+    if isinstance(counts, list):
+        runs = _list_runs(counts)
+    elif isinstance(counts, (str, bytes)):
+        runs = _string_runs(counts)
+    else:
+        raise SegmentationError(f"RLE counts must be a string or a list of integers, "
+                                f"got {type(counts).__name__}")
+    total = int(runs.sum()) if runs.size else 0
+    if total != h * w:
+        raise SegmentationError(f"RLE counts cover {total} pixels, its size {[h, w]} has "
+                                f"{h * w}")
+    return runs
+
+
+def _rle_size(rle: dict) -> tuple[int, int]:
+    """``(h, w)`` of an RLE's ``size``, checked (:func:`_image_size`)."""
+    size = rle.get("size") if isinstance(rle, dict) else None
+    if not isinstance(size, (list, tuple)) or len(size) != 2:
+        raise SegmentationError(f"RLE size must be [height, width], got {size!r}")
+    return _image_size(size[0], size[1], "RLE size", allow_empty=True)
+
+
+def _image_size(height, width, what: str, allow_empty: bool = False) -> tuple[int, int]:
+    """``(height, width)`` as ints: non-negative (positive unless ``allow_empty``) integers of
+    at most :data:`MAX_IMAGE_PIXELS` pixels together, else :class:`SegmentationError`."""
+    h, w = _integer(height), _integer(width)
+    low = 0 if allow_empty else 1
+    if h is None or w is None or h < low or w < low:
+        raise SegmentationError(f"{what} must be {'non-negative' if allow_empty else 'positive'}"
+                                f" integers, got {[height, width]!r}")
+    if h * w > MAX_IMAGE_PIXELS:
+        raise SegmentationError(f"{what} {[h, w]} is over {MAX_IMAGE_PIXELS} pixels")
+    return h, w
+
+
+def _integer(value) -> int | None:
+    """``value`` as an int when it is an integer (a JSON number without a fraction; not a
+    bool), else None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return None
+
+
+def _list_runs(counts: list) -> np.ndarray:
+    """Runs of uncompressed RLE counts: non-negative integers (sum checked by the caller)."""
+    runs = [_integer(c) for c in counts]
+    bad = next((i for i, r in enumerate(runs) if r is None or r < 0), None)
+    if bad is not None:
+        raise SegmentationError(f"RLE counts[{bad}] = {counts[bad]!r}: run lengths are "
+                                "non-negative integers")
+    if any(r > MAX_IMAGE_PIXELS for r in runs):
+        raise SegmentationError(f"RLE run longer than {MAX_IMAGE_PIXELS} pixels")
+    return np.asarray(runs, dtype=np.int64)
+
+
+def _string_runs(counts: str | bytes) -> np.ndarray:
+    """Runs of a COCO compressed RLE string (``pycocotools`` ``rleFrString``, vectorised).
+
+    Each run is 5-bit groups, least significant first, in characters ``48 + group`` with bit
+    0x20 saying "more groups follow"; the last group's bit 0x10 is the sign. From the fourth
+    run on, a run is stored as the difference to the run two before it.
+    """
+    if isinstance(counts, str):
+        if not counts.isascii():
+            raise SegmentationError("RLE counts string is not ASCII")
+        counts = counts.encode("ascii")
+    c = np.frombuffer(counts, dtype=np.uint8).astype(np.int64) - 48
+    if c.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if c.min() < 0 or c.max() > 63:
+        raise SegmentationError("RLE counts string holds characters outside '0'..'o'")
+    more = (c & 0x20) != 0
+    if more[-1]:
+        raise SegmentationError("RLE counts string is truncated (its last run is unfinished)")
+    ends = np.flatnonzero(~more)  # the last character of each run
+    starts = np.r_[0, ends[:-1] + 1]
+    length = ends - starts + 1
+    if length.max() > _MAX_GROUPS:
+        raise SegmentationError("RLE counts string holds a run too long to be a pixel count")
+    k = np.arange(c.size) - np.repeat(starts, length)  # group index inside its run
+    x = np.add.reduceat((c & 0x1F) << (5 * k), starts)
+    x = np.where((c[ends] & 0x10) != 0, x - (1 << (5 * length)), x)  # sign extension
+    runs = x.copy()
+    runs[1::2] = np.cumsum(x[1::2])  # odd runs from the 4th (index 3) on: + run two before
+    runs[2::2] = np.cumsum(x[2::2])  # even runs from index 4 on likewise; run 0 stays alone
+    if runs.min() < 0 or runs.max() > MAX_IMAGE_PIXELS:
+        bad = int(np.flatnonzero((runs < 0) | (runs > MAX_IMAGE_PIXELS))[0])
+        raise SegmentationError(f"RLE counts string decodes to run {bad} of length "
+                                f"{int(runs[bad])}")
+    return runs
 
 
 def _decode(rle: dict) -> np.ndarray:
@@ -168,20 +295,74 @@ def _decode(rle: dict) -> np.ndarray:
 
 
 def segm_to_mask(segm, height: int, width: int) -> np.ndarray:
-    """Boolean (height, width) mask of a COCO segmentation: RLE dict or list of polygons."""
-    mu = _mask_api()
+    """Boolean (height, width) mask of a COCO segmentation: RLE dict or list of polygons.
+
+    Polygons are lists ``[x1, y1, x2, y2, ...]`` (pixels, at least three points) of finite
+    numbers no further than one image size outside the image; they are rasterised as
+    ``pycocotools`` does (``frPyObjects``, the polygons merged into one mask). A malformed
+    segmentation raises :class:`SegmentationError` (a ``ValueError``).
+
+    A pixel ``(u, v)`` is the unit square from ``(u, v)`` to ``(u + 1, v + 1)``, so a polygon
+    along pixel edges covers exactly the pixels inside it:
+
+    >>> segm_to_mask([[1, 1, 4, 1, 4, 3, 1, 3]], 4, 5).astype(int)
+    array([[0, 0, 0, 0, 0],
+           [0, 1, 1, 1, 0],
+           [0, 1, 1, 1, 0],
+           [0, 0, 0, 0, 0]])
+    """
+    height, width = _image_size(height, width, "image size")
     if isinstance(segm, dict):
         mask = rle_to_mask(segm)
         if mask.shape != (height, width):
-            raise ValueError(f"RLE size {list(mask.shape)} != image size {[height, width]}")
+            raise SegmentationError(f"RLE size {list(mask.shape)} != image size "
+                                    f"{[height, width]}")
         return mask
-    polys = [list(map(float, p)) for p in segm]
+    polys = _polygons(segm, height, width)
     if not polys:
         return np.zeros((height, width), dtype=bool)
-    if any(len(p) < 6 or len(p) % 2 for p in polys):
-        raise ValueError("polygons need an even number (>= 6) of coordinates")
+    mu = _mask_api()
     rles = mu.frPyObjects(polys, height, width)
     return _decode(mu.merge(rles))
+
+
+def _polygons(segm, height: int, width: int) -> list[list[float]]:
+    """The polygons of a segmentation as lists of floats, checked (:func:`segm_to_mask`)."""
+    if not isinstance(segm, list):
+        raise SegmentationError(f"a segmentation is an RLE dict or a list of polygons, got "
+                                f"{type(segm).__name__}")
+    out = []
+    for i, poly in enumerate(segm):
+        if not isinstance(poly, list) or not all(_is_number(v) for v in poly):
+            raise SegmentationError(f"polygon {i}: a polygon is a flat list of numbers "
+                                    "[x1, y1, x2, y2, ...]")
+        if len(poly) < 6 or len(poly) % 2:
+            raise SegmentationError(f"polygon {i}: {len(poly)} coordinates; polygons need an "
+                                    "even number (>= 6) of coordinates")
+        finite = all(_is_finite(v) for v in poly)
+        xy = np.asarray(poly if finite else [], dtype=np.float64).reshape(-1, 2)
+        lim = np.array([width, height], dtype=np.float64)
+        if not (finite and np.all(xy >= -lim) and np.all(xy <= 2 * lim)):
+            raise SegmentationError(f"polygon {i}: coordinates must be finite and within one "
+                                    f"image size of the {width}x{height} image")
+        out.append([float(v) for v in poly])
+    return out
+
+
+def _is_number(value) -> bool:
+    """A JSON number: int or float, not a bool."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value,
+                                                                                        bool)
+
+
+def _is_finite(value) -> bool:
+    """A JSON number that is finite as a float (an integer too large for a float is not)."""
+    if not _is_number(value):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
 
 
 def mask_to_polygons(mask) -> list[list[float]]:
@@ -476,61 +657,147 @@ class _Invalid(Exception):
 
 
 def _load(path: str | Path) -> dict[str, Any]:
+    """The JSON object in ``path``; :class:`DataError` naming the file on any problem."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
+        data = path.read_bytes()
     except FileNotFoundError:
         raise DataError(path, "file not found") from None
+    except OSError as exc:
+        raise DataError(path, f"unreadable file ({exc.strerror or exc})") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DataError(path, f"not UTF-8 text (byte {exc.start}): not a JSON file") from None
+    try:
+        doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise DataError(path, f"invalid JSON ({exc})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(path, f"unreadable file ({exc})") from None
+    except (ValueError, RecursionError) as exc:  # digits over Python's limit, deep nesting
+        raise DataError(path, f"invalid JSON ({type(exc).__name__}: {exc})") from None
     if not isinstance(doc, dict):
-        raise DataError(path, "expected a JSON object with images, categories, annotations")
+        raise DataError(path, "expected a JSON object with images, categories, annotations, "
+                              f"got a JSON {_json_type(doc)}")
     return doc
 
 
+def _json_type(value) -> str:
+    """The JSON name of a parsed value's type, for messages."""
+    for kind, name in ((dict, "object"), (list, "array"), (str, "string"), (bool, "boolean"),
+                       (int, "number"), (float, "number")):
+        if isinstance(value, kind):
+            return name
+    return "null" if value is None else type(value).__name__
+
+
 def _validate(doc: dict, ann_keys: Sequence[str], segm_keys: Sequence[str]) -> None:
+    """Check a KINS / COCO document (keys, types, ids, segmentations); raises ``_Invalid``."""
     for key in ("images", "categories", "annotations"):
         if not isinstance(doc.get(key), list):
             raise _Invalid(f"missing or non-list top-level key '{key}'")
-    sizes = {}
-    for i, img in enumerate(doc["images"]):
-        missing = [k for k in IMAGE_KEYS if not isinstance(img, dict) or k not in img]
-        if missing:
-            raise _Invalid(f"images[{i}]: missing key(s) {missing}")
-        if img["id"] in sizes:
-            raise _Invalid(f"images[{i}]: duplicate image id {img['id']}")
-        sizes[img["id"]] = (int(img["height"]), int(img["width"]))
+    sizes = _check_images(doc["images"])
     cats = set()
     for i, cat in enumerate(doc["categories"]):
         if not isinstance(cat, dict) or "id" not in cat or "name" not in cat:
             raise _Invalid(f"categories[{i}]: needs 'id' and 'name'")
-        cats.add(cat["id"])
+        cats.add(_id(cat["id"], f"categories[{i}].id"))
     ids = set()
     for i, ann in enumerate(doc["annotations"]):
-        missing = [k for k in ann_keys if not isinstance(ann, dict) or k not in ann]
+        where = f"annotations[{i}]"
+        if not isinstance(ann, dict):
+            raise _Invalid(f"{where}: expected an object, got a JSON {_json_type(ann)}")
+        missing = [k for k in ann_keys if k not in ann]
         if missing:
-            raise _Invalid(f"annotations[{i}]: missing key(s) {missing}")
-        if ann["id"] in ids:
-            raise _Invalid(f"annotations[{i}]: duplicate annotation id {ann['id']}")
-        ids.add(ann["id"])
-        if ann["image_id"] not in sizes:
-            raise _Invalid(f"annotations[{i}]: unknown image_id {ann['image_id']}")
-        if ann["category_id"] not in cats:
-            raise _Invalid(f"annotations[{i}]: unknown category_id {ann['category_id']}")
+            raise _Invalid(f"{where}: missing key(s) {missing}")
+        ann_id = _id(ann["id"], f"{where}.id")
+        if ann_id in ids:
+            raise _Invalid(f"{where}: duplicate annotation id {ann_id}")
+        ids.add(ann_id)
+        if _id(ann["image_id"], f"{where}.image_id") not in sizes:
+            raise _Invalid(f"{where}: unknown image_id {ann['image_id']}")
+        if _id(ann["category_id"], f"{where}.category_id") not in cats:
+            raise _Invalid(f"{where}: unknown category_id {ann['category_id']}")
+        _check_fields(ann, where)
         for key in segm_keys:
-            _check_segm(ann[key], sizes[ann["image_id"]], f"annotations[{i}].{key}")
+            _check_segm(ann[key], sizes[ann["image_id"]], f"{where}.{key}")
+
+
+def _check_images(images: list) -> dict[int, tuple[int, int]]:
+    """``{image id: (height, width)}`` of checked ``images`` entries."""
+    sizes = {}
+    for i, img in enumerate(images):
+        if not isinstance(img, dict):
+            raise _Invalid(f"images[{i}]: expected an object, got a JSON {_json_type(img)}")
+        missing = [k for k in IMAGE_KEYS if k not in img]
+        if missing:
+            raise _Invalid(f"images[{i}]: missing key(s) {missing}")
+        image_id = _id(img["id"], f"images[{i}].id")
+        if image_id in sizes:
+            raise _Invalid(f"images[{i}]: duplicate image id {image_id}")
+        if not isinstance(img["file_name"], str) or not img["file_name"]:
+            raise _Invalid(f"images[{i}].file_name: expected a non-empty string")
+        if "frame" in img:
+            _id(img["frame"], f"images[{i}].frame")
+        try:
+            sizes[image_id] = _image_size(img["height"], img["width"], "height, width")
+        except SegmentationError as exc:
+            raise _Invalid(f"images[{i}]: {exc}") from None
+    return sizes
+
+
+def _id(value, where: str) -> int:
+    """An id: a non-negative integer (``_Invalid`` otherwise)."""
+    out = _integer(value)
+    if out is None or out < 0:
+        raise _Invalid(f"{where}: expected a non-negative integer, got {value!r}")
+    return out
+
+
+#: optional or required annotation fields and their check: "box" [x, y, w, h] finite with
+#: w, h >= 0; "count" a finite number >= 0; "order" an integer >= 0; "number" any number
+#: (NaN for unknown); "finite" a finite number; "flag" 0 or 1; "track" an integer or string
+_FIELDS = {"a_bbox": "box", "i_bbox": "box", "bbox": "box", "a_area": "count",
+           "i_area": "count", "area": "count", "oco_id": "order", "ico_id": "order",
+           "iscrowd": "flag", "score": "finite", "distance": "number",
+           "lidar_points": "number", "track_id": "track"}
+
+
+def _check_fields(ann: dict, where: str) -> None:
+    """Check the annotation's known non-segmentation fields (:data:`_FIELDS`)."""
+    for key, kind in _FIELDS.items():
+        if key not in ann:
+            continue
+        v = ann[key]
+        if kind == "box":
+            ok = (isinstance(v, list) and len(v) == 4 and all(_is_finite(x) for x in v)
+                  and v[2] >= 0 and v[3] >= 0)
+            want = "[x, y, w, h]: four finite numbers, w and h >= 0"
+        elif kind in ("count", "finite", "number"):
+            ok = _is_finite(v) if kind != "number" else _is_number(v)
+            ok = ok and (kind != "count" or v >= 0)
+            want = {"count": "a finite number >= 0", "finite": "a finite number",
+                    "number": "a number"}[kind]
+        elif kind in ("order", "flag"):
+            n = _integer(v)
+            ok = n is not None and (0 <= n if kind == "order" else n in (0, 1))
+            want = "an integer >= 0" if kind == "order" else "0 or 1"
+        else:
+            ok = v is None or isinstance(v, str) or _integer(v) is not None
+            want = "an integer or a string"
+        if not ok:
+            raise _Invalid(f"{where}.{key}: expected {want}, got {v!r}")
 
 
 def _check_segm(segm, size: tuple[int, int], where: str) -> None:
-    if isinstance(segm, dict):
-        if "size" not in segm or "counts" not in segm:
-            raise _Invalid(f"{where}: RLE needs 'size' and 'counts'")
-        if tuple(int(v) for v in segm["size"]) != size:
-            raise _Invalid(f"{where}: RLE size {list(segm['size'])} != image size {list(size)}")
-    elif isinstance(segm, list):
-        if not all(isinstance(p, list) and len(p) % 2 == 0 for p in segm):
-            raise _Invalid(f"{where}: polygons must be lists of x, y pairs")
-    else:
-        raise _Invalid(f"{where}: expected an RLE dict or a list of polygons")
+    """Check one segmentation completely (RLE runs or polygon coordinates) against its image's
+    ``(height, width)``, so that decoding it later cannot fail."""
+    try:
+        if isinstance(segm, dict):
+            rle_runs(segm)
+            rle_size = _rle_size(segm)
+            if rle_size != size:
+                raise SegmentationError(f"RLE size {list(rle_size)} != image size {list(size)}")
+        else:
+            _polygons(segm, *size)
+    except SegmentationError as exc:
+        raise _Invalid(f"{where}: {exc}") from None

@@ -24,6 +24,7 @@ for an ideally aligned calibration; the general form maps the heading vector
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +38,14 @@ from seqshape.camera import KittiCalib, PinholeCamera, cam_to_velo, read_calib, 
 from seqshape.data.categories import KITTI_CLASSES
 from seqshape.data.crop import CropConfig
 from seqshape.data.extract import extract_tracks as generic_tracks
-from seqshape.data.sequence import Box3D, DrivingLog
+from seqshape.data.sequence import (
+    MAX_BOX_SIZE,
+    MAX_RANGE,
+    Box3D,
+    DrivingLog,
+    drop_nonfinite_points,
+    read_float32,
+)
 from seqshape.data.track import Track
 from seqshape.errors import ConfigError, DataError
 from seqshape.geometry import wrap_angle
@@ -65,6 +73,11 @@ def seq_name(sequence: int | str) -> str:
         return f"{int(sequence):04d}"
     except (TypeError, ValueError):
         raise ValueError(f"KITTI sequence must be a number, got {sequence!r}") from None
+
+
+def _is_number(name: str) -> bool:
+    """``name`` is a frame or sequence number (ASCII digits only, as KITTI writes them)."""
+    return name.isascii() and name.isdigit()
 
 
 def velodyne_path(root, sequence, frame: int) -> Path:
@@ -97,25 +110,25 @@ def png_size(path) -> tuple[int, int]:
         raise DataError(path, f"cannot read image ({exc})") from None
     if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
         raise DataError(path, "not a PNG file")
-    return struct.unpack(">II", head[16:24])
+    width, height = struct.unpack(">II", head[16:24])
+    if not (0 < width < 2**31 and 0 < height < 2**31):  # the PNG specification's limits
+        raise DataError(path, f"PNG header gives an image size of {width} x {height}")
+    return width, height
 
 
 # ----------------------------------------------------------------------------- velodyne
 
 
 def read_velodyne(path) -> np.ndarray:
-    """A velodyne scan as ``(N, 4)`` float32 (x, y, z, reflectance), velodyne frame."""
+    """A velodyne scan as ``(N, 4)`` float32 (x, y, z, reflectance), velodyne frame.
+
+    A byte length that is not a multiple of 16 (4 float32 per point) is a :class:`DataError`;
+    points holding a NaN or an infinity are dropped, with one warning naming the file and the
+    count.
+    """
     path = Path(path)
-    try:
-        raw = np.fromfile(path, dtype="<f4")
-    except FileNotFoundError:
-        raise DataError(path, "velodyne file not found") from None
-    except OSError as exc:
-        raise DataError(path, f"unreadable velodyne file ({exc})") from None
-    if raw.size % 4:
-        raise DataError(path, f"size {raw.size * 4} bytes is not a multiple of 16 "
-                              f"(4 float32 per point): truncated or not a velodyne scan")
-    return raw.reshape(-1, 4).astype(np.float32, copy=False)
+    raw = read_float32(path, 4, "velodyne file", "x y z reflectance")
+    return drop_nonfinite_points(raw.reshape(-1, 4).astype(np.float32, copy=False), path)
 
 
 def write_velodyne(path, points) -> None:
@@ -158,19 +171,104 @@ class KittiLabel:
         return self.type == "DontCare"
 
 
+#: KITTI tracking/object types (anything else is read, with one warning per file).
+KITTI_TYPES = frozenset({"Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Person",
+                         "Cyclist", "Tram", "Misc", "DontCare"})
+
+#: Names of the numeric label columns after ``type``, for messages.
+_LABEL_FLOATS = ("truncated", "occluded", "alpha", "bbox left", "bbox top", "bbox right",
+                 "bbox bottom", "height", "width", "length", "x", "y", "z", "rotation_y",
+                 "score")
+
+#: Largest magnitude of a 2D box coordinate (pixels) and of an angle (rad) in a label row.
+MAX_PIXEL = 1.0e5
+MAX_ANGLE = 2 * math.pi
+#: Largest frame number (KITTI names frames with six digits).
+MAX_FRAME = 999_999
+_OCCLUSION_LEVELS = frozenset({-1.0, 0.0, 1.0, 2.0, 3.0})
+
+
+class _RowError(ValueError):
+    """A label or oxts row that is not valid (the reader adds the file and line)."""
+
+
+def _int_field(text: str, name: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise _RowError(f"{name} must be an integer, got {text!r}") from None
+
+
+def _float_fields(parts: list[str], names) -> list[float]:
+    try:
+        values = [float(v) for v in parts]
+    except ValueError as exc:
+        raise _RowError(f"bad number ({exc})") from None
+    if not math.isfinite(sum(values)):  # one sum in the common case; find the culprit after
+        for v, name in zip(values, names, strict=False):
+            if not math.isfinite(v):
+                raise _RowError(f"{name} is not finite ({v})")
+    return values
+
+
 def _parse_label(parts: list[str]) -> KittiLabel:
-    f = [float(v) for v in parts[3:]]  # ValueError on junk
-    return KittiLabel(frame=int(parts[0]), track_id=int(parts[1]), type=parts[2],
-                      truncated=f[0], occluded=int(round(f[1])), alpha=f[2], bbox=f[3:7],
-                      dimensions=f[7:10], location=f[10:13], rotation_y=f[13],
-                      score=f[14] if len(f) == 15 else None)
+    """One label row, validated (module docstring; docs/kitti.md lists what is refused)."""
+    frame = _int_field(parts[0], "frame")
+    track = _int_field(parts[1], "track_id")
+    if not 0 <= frame <= MAX_FRAME:
+        raise _RowError(f"frame {frame} is not in 0..{MAX_FRAME} (six-digit frame names)")
+    if track < -1:
+        raise _RowError(f"track_id must be >= -1 (-1 for DontCare), got {track}")
+    f = _float_fields(parts[3:], _LABEL_FLOATS)
+    trunc, occ, alpha, bbox, dims, loc, ry = f[0], f[1], f[2], f[3:7], f[7:10], f[10:13], f[13]
+    if not -1 <= trunc <= 2:
+        raise _RowError(f"truncated must be in [-1, 2], got {trunc:g}")
+    if occ not in _OCCLUSION_LEVELS:
+        raise _RowError(f"occluded must be an integer in -1..3, got {occ:g}")
+    left, top, right, bottom = bbox
+    if not (-MAX_PIXEL <= left <= right <= MAX_PIXEL and -MAX_PIXEL <= top <= bottom <= MAX_PIXEL):
+        raise _RowError(f"bbox {_g(bbox)} is not (left, top, right, bottom) pixels with "
+                        f"left <= right and top <= bottom")
+    if track >= 0 and parts[2] != "DontCare":
+        _check_box(dims, loc, alpha, ry)
+    return KittiLabel(frame=frame, track_id=track, type=parts[2], truncated=trunc,
+                      occluded=int(occ), alpha=alpha, bbox=bbox, dimensions=dims, location=loc,
+                      rotation_y=ry, score=f[14] if len(f) == 15 else None)
+
+
+def _check_box(dims: list[float], loc: list[float], alpha: float, ry: float) -> None:
+    """Refuse a physically absurd box (DontCare rows, with their -1/-1000 sentinels, skip this)."""
+    h, w, length = dims
+    if not (0 < h <= MAX_BOX_SIZE and 0 < w <= MAX_BOX_SIZE and 0 < length <= MAX_BOX_SIZE):
+        raise _RowError(f"dimensions (h, w, l) {_g(dims)} m: each must be in "
+                        f"(0, {MAX_BOX_SIZE:g}]")
+    if math.hypot(*loc) > MAX_RANGE:
+        raise _RowError(f"location {_g(loc)} is more than {MAX_RANGE:g} m from the camera")
+    if abs(alpha) > MAX_ANGLE or abs(ry) > MAX_ANGLE:
+        raise _RowError(f"alpha {alpha:g} / rotation_y {ry:g} rad: must be within "
+                        f"+-{MAX_ANGLE:.4g}")
+
+
+def _g(values) -> str:
+    return "(" + ", ".join(f"{v:g}" for v in values) + ")"
 
 
 def read_labels(path) -> list[KittiLabel]:
-    """Read a ``label_02`` file (17 columns, or 18 with a score); DontCare rows are kept."""
+    """Read a ``label_02`` file (17 columns, or 18 with a score); DontCare rows are kept.
+
+    Every row is validated; a malformed one is a :class:`DataError` naming the file and line
+    (docs/kitti.md, "What the readers refuse"): a wrong column count, a frame or track id that
+    is not an integer, a frame outside 0..999999, a track id below -1, a non-finite number, ``truncated`` outside [-1, 2], ``occluded`` not
+    one of -1..3, a 2D box with left > right or top > bottom, and, for rows with a box (not
+    DontCare, track id >= 0), a dimension <= 0 or above 30 m, a location more than 1 km away,
+    an angle beyond 2 pi, or a second row of the same track in the same frame. Types KITTI does
+    not define are read, with one warning per file.
+    """
     path = Path(path)
     text = read_text(path, "label file")
     labels = []
+    seen: dict[tuple[int, int], int] = {}
+    unknown: dict[str, int] = {}
     for lineno, line in enumerate(text.splitlines(), start=1):
         parts = line.split()
         if not parts:
@@ -179,11 +277,19 @@ def read_labels(path) -> list[KittiLabel]:
             raise DataError(path, f"expected 17 or 18 columns, got {len(parts)}", line=lineno)
         try:
             lab = _parse_label(parts)
-        except ValueError as exc:
-            raise DataError(path, f"bad number ({exc})", line=lineno) from None
-        if lab.frame < 0:
-            raise DataError(path, f"negative frame {lab.frame}", line=lineno)
+        except _RowError as exc:
+            raise DataError(path, str(exc), line=lineno) from None
+        if lab.track_id >= 0 and not lab.is_dontcare:
+            first = seen.setdefault((lab.frame, lab.track_id), lineno)
+            if first != lineno:
+                raise DataError(path, f"track {lab.track_id} appears twice in frame "
+                                      f"{lab.frame} (first on line {first})", line=lineno)
+        if lab.type not in KITTI_TYPES:
+            unknown[lab.type] = unknown.get(lab.type, 0) + 1
         labels.append(lab)
+    if unknown:
+        log.warning("%s: %d row(s) with types KITTI does not define %s (read, no vehicle "
+                    "class)", path, sum(unknown.values()), sorted(unknown))
     return labels
 
 
@@ -255,8 +361,21 @@ def pose_to_label_fields(pose, size, calib: KittiCalib) -> dict:
 # ----------------------------------------------------------------------------- oxts
 
 
+#: oxts columns that are angles (rad) and how far they may go.
+_OXTS_ANGLES = range(3, 6)
+#: Largest altitude magnitude (m) an oxts row may hold.
+MAX_ALTITUDE = 1.0e5
+
+
 def read_oxts(path) -> np.ndarray:
-    """An oxts file (one row of 30 numbers per frame) as ``(T, 30)`` float64."""
+    """An oxts file (one row of 30 numbers per frame) as ``(T, 30)`` float64.
+
+    Every row is validated; a malformed one is a :class:`DataError` naming the file and line: a
+    column count other than 30, a non-numeric or non-finite value, a latitude outside
+    (-90, 90) (the poles have no Mercator position), a longitude outside [-180, 180], an
+    altitude beyond 100 km, roll, pitch or yaw beyond 2 pi, or status columns (navstat,
+    numsats, posmode, velmode, orimode) that are not non-negative integers.
+    """
     path = Path(path)
     text = read_text(path, "oxts file")
     rows = []
@@ -267,10 +386,28 @@ def read_oxts(path) -> np.ndarray:
         if len(parts) != 30:
             raise DataError(path, f"expected 30 oxts columns, got {len(parts)}", line=lineno)
         try:
-            rows.append([float(v) for v in parts])
-        except ValueError as exc:
-            raise DataError(path, f"bad number ({exc})", line=lineno) from None
+            rows.append(_oxts_row(parts))
+        except _RowError as exc:
+            raise DataError(path, str(exc), line=lineno) from None
     return np.array(rows, dtype=np.float64).reshape(-1, 30)
+
+
+def _oxts_row(parts: list[str]) -> list[float]:
+    row = _float_fields(parts, OXTS_COLUMNS)
+    lat, lon, alt = row[:3]
+    if not -90 < lat < 90:
+        raise _RowError(f"latitude {lat:g} is not in (-90, 90) degrees")
+    if not -180 <= lon <= 180:
+        raise _RowError(f"longitude {lon:g} is not in [-180, 180] degrees")
+    if abs(alt) > MAX_ALTITUDE:
+        raise _RowError(f"altitude {alt:g} m is beyond {MAX_ALTITUDE:g} m")
+    for j in _OXTS_ANGLES:
+        if abs(row[j]) > MAX_ANGLE:
+            raise _RowError(f"{OXTS_COLUMNS[j]} {row[j]:g} rad is beyond +-{MAX_ANGLE:.4g}")
+    for j in _OXTS_INT_COLUMNS:
+        if row[j] < 0 or not row[j].is_integer():
+            raise _RowError(f"{OXTS_COLUMNS[j]} must be a non-negative integer, got {row[j]:g}")
+    return row
 
 
 def write_oxts(path, rows) -> None:
@@ -421,7 +558,7 @@ class KittiTrackingSequence(DrivingLog):
         for folder, ext in (("velodyne", ".bin"), ("image_02", ".png")):
             d = self.root / folder / self.sequence
             if d.is_dir():
-                frames = sorted(int(p.stem) for p in d.glob(f"*{ext}") if p.stem.isdigit())
+                frames = sorted(int(p.stem) for p in d.glob(f"*{ext}") if _is_number(p.stem))
                 if frames:
                     return frames
         return sorted(self.labels_by_frame)
@@ -516,7 +653,7 @@ class KittiTrackingSequence(DrivingLog):
         names = {p.stem for p in (root / "label_02").glob("*.txt")}
         names |= {p.name for p in (root / "velodyne").glob("*") if p.is_dir()}
         names |= {p.stem for p in (root / "calib").glob("*.txt")}
-        return sorted(n for n in names if n.isdigit())
+        return sorted(n for n in names if _is_number(n))
 
 
 def kitti_classes(types) -> tuple[str, ...]:

@@ -34,6 +34,17 @@ numbered 0..T-1; a frame's time is its ``LIDAR_TOP`` keyframe timestamp (microse
 0.6: at least 60 % of the object is visible in the six images). ``extra``: ``token`` (the
 sample_annotation token), ``visibility_level`` (e.g. ``"v60-80"``), ``attributes`` (names),
 ``num_radar_pts``, ``rotation`` ((3, 3) box axes -> sensor frame, with any roll and pitch).
+
+Errors: a missing or malformed table (not JSON, not a list of records with string tokens, a
+missing or wrongly typed field, a dangling token) is a :class:`~seqshape.errors.DataError`
+naming the table file; so are a quaternion whose norm is not 1 within 1e-3 (closer ones are
+normalised), a non-finite number, a box dimension <= 0 or above 30 m, a box centre more than
+1 km from the sensor, a sensor more than 1 km from the ego origin, a pose beyond 10,000 km, a
+timestamp that is not a non-negative number, a ``num_lidar_pts`` that is not a non-negative
+integer, a camera without positive focal lengths, a keyframe ``filename`` that is absolute
+or climbs out of the data root (``..``) and two keyframes of one channel in one sample. A
+LiDAR file whose size is not a multiple of 20 bytes is a DataError; its points holding a NaN
+or an infinity are dropped with one warning.
 """
 
 from __future__ import annotations
@@ -48,7 +59,16 @@ from pathlib import Path
 import numpy as np
 
 from seqshape.camera import PinholeCamera
-from seqshape.data.sequence import Box3D, DrivingLog
+from seqshape.data.sequence import (
+    MAX_RANGE,
+    MAX_WORLD,
+    Box3D,
+    DrivingLog,
+    box_problems,
+    drop_nonfinite_points,
+    read_float32,
+    unit_quaternions,
+)
 from seqshape.errors import ConfigError, DataError
 
 log = logging.getLogger(__name__)
@@ -115,19 +135,12 @@ def quaternion_to_matrix(q) -> np.ndarray:
 def read_pcd_bin(path) -> np.ndarray:
     """A nuScenes LiDAR file: ``(N, 5)`` float32 ``x, y, z, intensity, ring`` (LiDAR frame).
 
-    A missing file, or a size that is not a multiple of 20 bytes, is a :class:`DataError`.
+    A missing file, or a size that is not a multiple of 20 bytes, is a :class:`DataError`;
+    points holding a NaN or an infinity are dropped, with one warning naming the file and the
+    count.
     """
-    path = Path(path)
-    try:
-        data = np.fromfile(path, dtype="<f4")
-    except FileNotFoundError:
-        raise DataError(path, "LiDAR file not found") from None
-    except (OSError, ValueError) as exc:
-        raise DataError(path, f"unreadable LiDAR file ({exc})") from None
-    if data.size % 5:
-        raise DataError(path, f"size {data.size * 4} bytes is not a multiple of 20 "
-                              "(5 float32 per point: x y z intensity ring)")
-    return data.reshape(-1, 5)
+    raw = read_float32(path, 5, "LiDAR file", "x y z intensity ring")
+    return drop_nonfinite_points(raw.reshape(-1, 5), path)
 
 
 def _rigid(rotation: np.ndarray, translation) -> np.ndarray:
@@ -184,8 +197,10 @@ def _read_table(path: Path) -> list[dict]:
         raise DataError(path, "nuScenes table not found") from None
     except json.JSONDecodeError as exc:
         raise DataError(path, f"malformed JSON: {exc.msg}", line=exc.lineno) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(path, f"unreadable nuScenes table ({exc})") from None
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError, MemoryError) as exc:
+        # ValueError: an integer of more than 4300 digits; RecursionError: absurd nesting
+        raise DataError(path, f"unreadable nuScenes table ({type(exc).__name__}: "
+                              f"{str(exc)[:200]})") from None
     if not isinstance(records, list):
         raise DataError(path, f"expected a JSON list of records, got {type(records).__name__}")
     return records
@@ -230,8 +245,11 @@ class NuScenesTables:
         return self.table_dir / f"{table}.json"
 
     def field(self, rec: dict, key: str, table: str, kind=None):
-        """``rec[key]`` (of type ``kind``), or a DataError naming the table and record."""
-        if key not in rec or (kind is not None and not isinstance(rec[key], kind)):
+        """``rec[key]`` (of type ``kind``; a bool is not a number), or a DataError naming the
+        table and record."""
+        value = rec.get(key)
+        if key not in rec or (kind is not None and (
+                not isinstance(value, kind) or (isinstance(value, bool) and kind is not bool))):
             what = "missing" if key not in rec else f"not a {getattr(kind, '__name__', kind)}"
             raise DataError(self.path(table), f"record {rec.get('token')!r}: field {key!r} "
                                               f"{what}")
@@ -257,10 +275,27 @@ class NuScenesTables:
                                               "has a non-finite value")
         return v
 
+    def rotation(self, rec: dict, table: str) -> np.ndarray:
+        """(3, 3) of the record's ``rotation`` quaternion (normalised when its norm is within
+        1e-3 of 1, else a DataError)."""
+        q = self.vector(rec, "rotation", table, 4)
+        unit_quaternions(q, self.path(table), f"record {rec.get('token')!r}: rotation")
+        return quaternion_to_matrix(q)  # normalises, exactly as before the check
+
+    def translation(self, rec: dict, table: str, limit: float) -> np.ndarray:
+        """(3,) the record's ``translation``; a coordinate beyond ``limit`` m is a DataError."""
+        t = self.vector(rec, "translation", table, 3)
+        if np.abs(t).max() > limit:
+            raise DataError(self.path(table), f"record {rec.get('token')!r}: translation "
+                                              f"{t.tolist()} is beyond {limit:g} m")
+        return t
+
     def transform(self, rec: dict, table: str) -> np.ndarray:
-        """(4, 4) of a ``calibrated_sensor`` or ``ego_pose`` record (rotation, translation)."""
-        return _rigid(quaternion_to_matrix(self.vector(rec, "rotation", table, 4)),
-                      self.vector(rec, "translation", table, 3))
+        """(4, 4) of a ``calibrated_sensor`` or ``ego_pose`` record (rotation, translation):
+        a sensor within :data:`MAX_RANGE` of the ego origin, an ego pose within
+        :data:`MAX_WORLD` of the global origin."""
+        limit = MAX_RANGE if table == "calibrated_sensor" else MAX_WORLD
+        return _rigid(self.rotation(rec, table), self.translation(rec, table, limit))
 
     def _index_channels(self) -> dict[str, tuple[str, str]]:
         out = {}
@@ -275,17 +310,22 @@ class NuScenesTables:
         for i, rec in enumerate(records):
             if not isinstance(rec, dict):
                 raise DataError(path, f"record {i} is not an object")
-            if not rec.get("is_key_frame"):
+            if not self.field(rec, "is_key_frame", "sample_data", bool):
                 continue
             for key in ("token", "sample_token", "calibrated_sensor_token", "ego_pose_token",
-                        "filename", "timestamp"):
-                self.field(rec, key, "sample_data")
+                        "filename"):
+                self.field(rec, key, "sample_data", str)
+            _timestamp_us(self, rec)
+            _relative_file(rec["filename"], path, rec["token"])
             channel = self.channels.get(rec["calibrated_sensor_token"])
             if channel is None:
                 raise DataError(path, f"record {rec['token']!r}: calibrated_sensor_token "
                                       f"{rec['calibrated_sensor_token']!r} not in "
                                       "calibrated_sensor.json")
-            out.setdefault(rec["sample_token"], {})[channel[0]] = rec
+            other = out.setdefault(rec["sample_token"], {}).setdefault(channel[0], rec)
+            if other is not rec:
+                raise DataError(path, f"sample {rec['sample_token']!r} has two {channel[0]} "
+                                      f"keyframes ({other['token']!r}, {rec['token']!r})")
         return out
 
     def _keep_ego_poses(self, ego: dict[str, dict]) -> dict[str, dict]:
@@ -407,7 +447,7 @@ class NuScenesLog(DrivingLog):
         return rec
 
     def _timestamp_us(self, sd: dict) -> int:
-        return int(self.tables.field(sd, "timestamp", "sample_data", (int, float)))
+        return _timestamp_us(self.tables, sd)
 
     def _calib(self, sd: dict) -> np.ndarray:
         t = self.tables
@@ -478,22 +518,36 @@ class NuScenesLog(DrivingLog):
     def _box(self, ann: dict, global_to_sensor: np.ndarray) -> Box3D:
         t, table = self.tables, "sample_annotation"
         category = t.category_name(ann)
-        centre = global_to_sensor[:3, :3] @ t.vector(ann, "translation", table, 3) \
+        centre = global_to_sensor[:3, :3] @ t.translation(ann, table, MAX_WORLD) \
             + global_to_sensor[:3, 3]
-        rotation = global_to_sensor[:3, :3] @ quaternion_to_matrix(
-            t.vector(ann, "rotation", table, 4))
+        rotation = global_to_sensor[:3, :3] @ t.rotation(ann, table)
         width, length, height = t.vector(ann, "size", table, 3)
+        bad, why = box_problems(centre, (length, width, height))
+        if bad[0]:
+            raise DataError(t.path(table), f"record {ann.get('token')!r}: {why[0]} (size is "
+                                           "[width, length, height])")
         level = self._visibility_level(ann)
         extra = {"token": ann.get("token"), "visibility_level": level,
                  "attributes": self._attributes(ann), "num_radar_pts": ann.get("num_radar_pts"),
                  "rotation": rotation}
-        npts = ann.get("num_lidar_pts")
         return Box3D(track_id=ann["instance_token"], category=category,
                      cls=category_to_class(category)[0], centre=centre,
                      size=(length, width, height),
                      yaw=float(np.arctan2(rotation[1, 0], rotation[0, 0])),
-                     num_points=int(npts) if isinstance(npts, (int, float)) else None,
+                     num_points=self._point_count(ann),
                      visibility=_visibility_fraction(level), extra=extra)
+
+    def _point_count(self, ann: dict) -> int | None:
+        """``num_lidar_pts`` (a non-negative integer; None when absent)."""
+        n = ann.get("num_lidar_pts")
+        if n is None:
+            return None
+        valid = not isinstance(n, bool) and isinstance(n, (int, float))
+        if not (valid and n >= 0 and float(n).is_integer()):
+            path = self.tables.path("sample_annotation")
+            raise DataError(path, f"record {ann.get('token')!r}: num_lidar_pts {n!r} is not a "
+                                  "non-negative integer")
+        return int(n)
 
     def _attributes(self, ann: dict) -> list[str]:
         tokens = ann.get("attribute_tokens") or []
@@ -535,6 +589,10 @@ class NuScenesLog(DrivingLog):
         sd = self._keyframe(self.sample_tokens[i], name)
         calib = t.get("calibrated_sensor", sd["calibrated_sensor_token"])
         K = t.vector(calib, "camera_intrinsic", "calibrated_sensor", (3, 3))
+        if not (K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] != 0):
+            raise DataError(t.path("calibrated_sensor"), f"record {calib['token']!r}: "
+                                                         f"camera_intrinsic {K.tolist()} has no "
+                                                         "positive focal lengths")
         size = (t.field(sd, "width", "sample_data", int), t.field(sd, "height", "sample_data", int))
         if min(size) <= 0:
             raise DataError(t.path("sample_data"), f"record {sd['token']!r}: image size {size}")
@@ -556,6 +614,23 @@ class NuScenesLog(DrivingLog):
     def log_names(cls, root, version: str | None = None) -> list[str]:
         """The scene names of the dataset (sorted)."""
         return sorted(load_tables(root, version).scene_by_name)
+
+
+def _timestamp_us(tables: NuScenesTables, sd: dict) -> int:
+    """A ``sample_data`` record's timestamp (us): a finite number in [0, 1e17]."""
+    ts = tables.field(sd, "timestamp", "sample_data", (int, float))
+    if not (isinstance(ts, int) or np.isfinite(ts)) or ts < 0 or ts > 1e17:
+        raise DataError(tables.path("sample_data"), f"record {sd.get('token')!r}: timestamp "
+                                                    f"{ts!r} is not a time in microseconds")
+    return int(ts)
+
+
+def _relative_file(name: str, table: Path, token) -> None:
+    """Refuse a data file name that could leave the data root (absolute, ``..``, empty)."""
+    parts = name.replace("\\", "/").split("/")
+    if not name or name.startswith("/") or ":" in parts[0] or ".." in parts or "\0" in name:
+        raise DataError(table, f"record {token!r}: filename {name!r} is not a path inside the "
+                               "data root")
 
 
 def _visibility_fraction(level: str | None) -> float | None:

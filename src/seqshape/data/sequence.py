@@ -30,6 +30,8 @@ ids (``VEHICLE_CLASSES``, ``CLASS_TO_KINS``, re-exported here) are defined once,
 from __future__ import annotations
 
 import abc
+import os
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +41,7 @@ import numpy as np
 from seqshape.camera import PinholeCamera
 from seqshape.data.categories import CLASS_TO_KINS as CLASS_TO_KINS  # re-exported
 from seqshape.data.categories import VEHICLE_CLASSES
-from seqshape.errors import ConfigError
+from seqshape.errors import ConfigError, DataError
 
 
 def parse_classes(text: str | Iterable[str] | None) -> tuple[str, ...]:
@@ -53,6 +55,114 @@ def parse_classes(text: str | Iterable[str] | None) -> tuple[str, ...]:
         raise ConfigError(f"unknown vehicle class(es) {bad or items}: choose from "
                           f"{', '.join(VEHICLE_CLASSES)}")
     return tuple(dict.fromkeys(items))
+
+
+# ---------------------------------------------------------------------------------------------
+# what every reader refuses (docs/datasets.md, "What the readers refuse")
+
+#: Largest box dimension (m) a reader accepts: longer than any road vehicle (an articulated
+#: bus is 18-25 m); a dimension <= 0 or above this is garbage.
+MAX_BOX_SIZE = 30.0
+
+#: Farthest (m) a box centre or a sensor may be from the sensor frame's origin.
+MAX_RANGE = 1000.0
+
+#: Largest coordinate (m) of a pose in a dataset's world frame (city, global, GPS Mercator):
+#: 10,000 km, beyond any real frame, so only overflowed or corrupt values are refused.
+MAX_WORLD = 1.0e7
+
+#: A quaternion whose norm is within this of 1 is normalised; any other is refused.
+QUATERNION_TOLERANCE = 1e-3
+
+
+def box_problems(centres, sizes, yaws=None) -> tuple[np.ndarray, list[str]]:
+    """Which boxes are garbage, and why: ``(bad (N,) bool, reasons)`` with one reason per bad
+    box (in order).
+
+    A box is refused for a non-finite centre, size or yaw, a dimension <= 0 or above
+    :data:`MAX_BOX_SIZE`, or a centre farther than :data:`MAX_RANGE` from the sensor.
+
+    >>> bad, why = box_problems([[1.0, 2, 0], [2e3, 0, 0]], [[4.0, 2, 1.5], [4, 0, 1.5]])
+    >>> bad.tolist(), why
+    ([False, True], ['size (4, 0, 1.5) m: each dimension must be in (0, 30]'])
+    """
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    s = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
+    y = np.zeros(len(c)) if yaws is None else np.asarray(yaws, dtype=np.float64).reshape(-1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        finite = np.isfinite(c).all(1) & np.isfinite(s).all(1) & np.isfinite(y)
+        size_ok = ((s > 0) & (s <= MAX_BOX_SIZE)).all(1)
+        near = np.sqrt((c * c).sum(1)) <= MAX_RANGE
+    bad = ~(finite & size_ok & near)
+    reasons = []
+    for i in np.flatnonzero(bad):
+        if not finite[i]:
+            reasons.append(f"non-finite box (centre {_g(c[i])}, size {_g(s[i])}, yaw {y[i]:g})")
+        elif not size_ok[i]:
+            reasons.append(f"size {_g(s[i])} m: each dimension must be in (0, {MAX_BOX_SIZE:g}]")
+        else:
+            reasons.append(f"box centre {_g(c[i])} is more than {MAX_RANGE:g} m from the sensor")
+    return bad, reasons
+
+
+def _g(v) -> str:
+    return "(" + ", ".join(f"{float(x):g}" for x in np.ravel(v)) + ")"
+
+
+def unit_quaternions(q, path, what: str = "quaternion") -> np.ndarray:
+    """Quaternions ``(N, 4)`` (or one ``(4,)``) normalised, or a :class:`DataError` naming
+    ``path`` (and the first bad row) when one is non-finite or its norm is more than
+    :data:`QUATERNION_TOLERANCE` from 1.
+
+    >>> unit_quaternions([1.0005, 0, 0, 0], "a.json").tolist()
+    [1.0, 0.0, 0.0, 0.0]
+    """
+    q = np.asarray(q, dtype=np.float64)
+    norm = np.sqrt(np.einsum("...i,...i->...", q, q))[..., None]  # no overflow warning
+    ok = np.abs(norm - 1) <= QUATERNION_TOLERANCE  # False for NaN
+    if not ok.all():
+        bad = np.flatnonzero(~ok.reshape(-1))
+        i = int(bad[0])
+        where = f" (row {i}; {len(bad)} row(s) in all)" if q.ndim > 1 else ""
+        raise DataError(path, f"{what} {_g(q.reshape(-1, 4)[i])} has norm "
+                              f"{float(norm.reshape(-1)[i]):.6g}, not 1 (tolerance "
+                              f"{QUATERNION_TOLERANCE:g}){where}")
+    return q / norm
+
+
+def read_float32(path, columns: int, what: str, names: str) -> np.ndarray:
+    """The little-endian float32 values of a headerless point file (KITTI ``.bin``, nuScenes
+    ``.pcd.bin``) as a flat array; a missing or unreadable file, or a byte length that is not
+    a whole number of ``columns``-float points, is a :class:`DataError` naming it."""
+    path = Path(path)
+    try:
+        raw = np.fromfile(path, dtype="<f4")  # drops a 1-3 byte tail: compare with the size
+        size = os.stat(path).st_size
+    except FileNotFoundError:
+        raise DataError(path, f"{what} not found") from None
+    except (OSError, ValueError) as exc:
+        raise DataError(path, f"unreadable {what} ({exc})") from None
+    if size % (4 * columns) or raw.nbytes != size:
+        raise DataError(path, f"size {size} bytes is not a multiple of {4 * columns} "
+                              f"({columns} float32 per point: {names}): truncated or not a "
+                              f"{what}")
+    return raw
+
+
+def drop_nonfinite_points(points: np.ndarray, path) -> np.ndarray:
+    """``points`` (N, C) without its rows holding a NaN or an infinity; when there are any,
+    one ``warnings.warn`` naming ``path`` and how many were dropped.
+
+    The common all-finite case costs one pass and no copy.
+    """
+    finite = np.isfinite(points)
+    if finite.all():
+        return points
+    keep = finite.all(axis=1)
+    dropped = int(len(points) - keep.sum())
+    warnings.warn(f"{path}: dropped {dropped} of {len(points)} points with a non-finite value",
+                  stacklevel=3)
+    return points[keep]
 
 
 @dataclass

@@ -21,12 +21,14 @@ import importlib
 import json
 import logging
 import multiprocessing
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from seqshape._io import atomic_write_json
 from seqshape._progress import progress
+from seqshape._runner import watch_parent
 from seqshape.data.crop import CropConfig
 from seqshape.data.dataset import check_folder_settings, manifest_entry, write_manifest
 from seqshape.data.extract import extract_tracks, track_name
@@ -259,9 +261,12 @@ def _extract_log(job: LogJob, t0: float) -> LogResult:
     return LogResult(job.log, marker=marker, seconds=seconds, warnings=warnings)
 
 
-def _pool_context():
+def _pool(workers: int):
+    """A pool of ``workers`` processes (forkserver where available, else spawn) whose workers
+    end themselves when this process dies (:func:`seqshape._runner.watch_parent`)."""
     methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    return ctx.Pool(workers, initializer=watch_parent, initargs=(os.getpid(),))
 
 
 def run_jobs(jobs: list[LogJob], workers: int):
@@ -274,7 +279,7 @@ def run_jobs(jobs: list[LogJob], workers: int):
             results = map(extract_log, jobs)
             pool = None
         else:
-            pool = _pool_context().Pool(min(workers, len(jobs)))
+            pool = _pool(min(workers, len(jobs)))
             results = pool.imap_unordered(extract_log, jobs, chunksize=1)
         try:
             for res in results:

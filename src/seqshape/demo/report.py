@@ -1,10 +1,12 @@
 """The demo report: sections of markdown, images and links, written as markdown and as HTML.
 
 :func:`md_to_html` converts the small markdown subset the sections use (tables, bullet lists,
-paragraphs, ``code``); there is no markdown dependency.
+paragraphs, ``code``, ``**bold**``); there is no markdown dependency.
 
 >>> md_to_html("| a | b |\\n|---|---|\\n| 1 | `x` |")
 '<table><tr><th>a</th><th>b</th></tr><tr><td>1</td><td><code>x</code></td></tr></table>'
+>>> md_to_html("**Title** and `a**b`")
+'<p><strong>Title</strong> and <code>a**b</code></p>'
 """
 
 from __future__ import annotations
@@ -23,11 +25,33 @@ class Section:
     links: list[tuple[str, str]] = field(default_factory=list)    # (label, path)
 
 
+def _bold(s: str) -> str:
+    """``**text**`` -> ``<strong>text</strong>`` (pairs only; a lone ``**`` stays)."""
+    parts = s.split("**")
+    if len(parts) < 3:
+        return s
+    out = parts[0]
+    for i in range(1, len(parts)):
+        if i % 2 == 1 and i + 1 < len(parts):
+            out += "<strong>" + parts[i]
+        elif i % 2 == 0:
+            out += "</strong>" + parts[i]
+        else:
+            out += "**" + parts[i]
+    return out
+
+
 def _inline(s: str) -> str:
-    s = html.escape(s)
-    while s.count("`") >= 2:
-        s = s.replace("`", "<code>", 1).replace("`", "</code>", 1)
-    return s
+    """Escaped HTML of one line: ``code`` spans, and ``**bold**`` outside them."""
+    pieces = html.escape(s).split("`")
+    n_code = len(pieces) - 1 - (len(pieces) - 1) % 2  # back-quotes that pair up
+    out = []
+    for i, piece in enumerate(pieces):
+        if i % 2 == 1 and i <= n_code:
+            out.append(f"<code>{piece}</code>")
+        else:
+            out.append(("`" if i > n_code else "") + _bold(piece))
+    return "".join(out)
 
 
 def _table_html(lines: list[str]) -> str:
@@ -39,7 +63,8 @@ def _table_html(lines: list[str]) -> str:
 
 
 def md_to_html(text: str) -> str:
-    """HTML of the markdown subset the sections use: tables, bullet lists, paragraphs, `code`."""
+    """HTML of the markdown subset the sections use: tables, bullet lists, paragraphs, `code`,
+    **bold**."""
     out: list[str] = []
     table: list[str] = []
     items: list[str] = []

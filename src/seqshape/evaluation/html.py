@@ -23,6 +23,9 @@ from seqshape.evaluation.runner import EstimatorLike, predict_track
 from seqshape.geometry import box_corners, sensor_to_canonical
 
 COLORS = {"sequential": "#1f77b4", "baseline": "#ff7f0e", "boxfit": "#9467bd"}
+#: Share of the page width on the left of the frame slider kept for the play and pause buttons
+#: (stacked): 0.1 of a page 700 px wide is 70 px, wider than the "pause" button.
+PLAYER_WIDTH = 0.1
 _EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4),
           (0, 4), (1, 5), (2, 6), (3, 7)]
 
@@ -110,14 +113,16 @@ def track_figure(track: Track, predictions: Mapping[str, tuple[range, list]],
         scene=dict(xaxis=dict(title="x (m)", **axis), yaxis=dict(title="y (m)", **axis),
                    zaxis=dict(title="z (m)", **axis), aspectmode="cube"),
         sliders=[dict(active=0, currentvalue=dict(prefix="frame "), steps=steps,
-                      pad=dict(t=30))],
-        updatemenus=[dict(type="buttons", showactive=False, x=0.05, y=0.0, buttons=[
+                      x=PLAYER_WIDTH, len=1.0 - PLAYER_WIDTH, xanchor="left", y=0.0,
+                      yanchor="top", pad=dict(t=30, b=10))],
+        updatemenus=[dict(type="buttons", showactive=False, direction="down", x=0.0,
+                          xanchor="left", y=0.0, yanchor="top", pad=dict(t=30, r=10), buttons=[
             dict(label="play", method="animate",
                  args=[None, dict(frame=dict(duration=150, redraw=True), fromcurrent=True)]),
             dict(label="pause", method="animate",
                  args=[[None], dict(mode="immediate", frame=dict(duration=0, redraw=False))]),
         ])],
-        legend=dict(itemsizing="constant"), margin=dict(l=0, r=0, t=40, b=0), height=700)
+        legend=dict(itemsizing="constant"), margin=dict(l=10, r=10, t=40, b=90), height=760)
     return fig
 
 

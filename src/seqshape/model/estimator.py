@@ -15,6 +15,11 @@ Optional per-track inputs of :meth:`Estimator.step` (all default to None = unkno
 post-processing (:mod:`seqshape.model.heading`) use the track's motion) and ``timestamps``
 (s; the time steps of a ``motion_input`` model, else one ``frame_period`` per step).
 
+Until a track has had a frame with points its estimate is the network's prior (a car decoded
+around the sensor origin): :attr:`Estimate.valid` is False for those steps. Points are checked
+(:func:`check_points`): real numbers only (bool, complex, strings and objects are refused), no
+NaN or inf, within :data:`MAX_RANGE` of the sensor; a refused step changes no track's state.
+
 Weight files (checkpoints and exported ``model.pt``) are plain dicts read with
 ``torch.load(weights_only=True)``::
 
@@ -35,6 +40,7 @@ matching the PyTorch reference here, which ``backend="torch"`` always runs.
 from __future__ import annotations
 
 import logging
+import warnings
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -73,6 +79,10 @@ PRETRAINED = "pretrained"
 #: given: about the short end of each class (the points' running extent raises it). Only the
 #: classes longer than ``ModelConfig.scale_ref`` change anything.
 CLASS_MIN_LENGTH = {"car": 3.5, "van": 4.5, "truck": 6.5, "bus": 10.0, "trailer": 7.0}
+#: Farthest point (m from the sensor) :meth:`Estimator.step` accepts: no LiDAR return of a
+#: vehicle lies 1 km away, so such a point is a unit or frame mistake (millimetres, a world or
+#: map frame) that would give a meaningless estimate.
+MAX_RANGE = 1000.0
 
 
 def pretrained_path(kind: str) -> Path:
@@ -154,6 +164,12 @@ class Estimate:
     was carried forward from the state). ``flipped``: the heading post-processing turned the
     network's yaw by pi (the placed ``complete`` is unchanged); ``scale``: the input scale s
     used (1 without ``scale_norm``).
+
+    ``valid``: whether the estimate rests on points of the track. False until the track's first
+    frame with points (since its start or its last reset): :class:`Estimator` then returns the
+    network's output from an empty state, a car decoded around the sensor origin, not a
+    measurement; also False for an estimate whose pose is not finite. It stays True over later
+    empty frames (the estimate carried forward from the state).
     """
 
     track_id: str
@@ -162,6 +178,10 @@ class Estimate:
     num_points: int
     flipped: bool = field(default=False, init=False)
     scale: float = field(default=1.0, init=False)
+    valid: bool = field(default=True, init=False)
+
+    def __post_init__(self):
+        self.valid = bool(np.all(np.isfinite(self.pose)))
 
 
 @dataclass
@@ -309,15 +329,11 @@ class Estimator:
 
     def _frames(self, states: list[_TrackState], point_lists: Sequence[np.ndarray]
                 ) -> tuple[list[np.ndarray], list[int]]:
-        """Each track's frame fitted to at most N points (a random subset of a larger one),
-        finite rows only, and its point count before the subset."""
+        """Each track's frame (checked by :func:`check_points`) fitted to at most N points (a
+        random subset of a larger one), and its point count before the subset."""
         frames, counts = [], []
         n_max = self.model.cfg.num_points
-        for i, (st, pts) in enumerate(zip(states, point_lists, strict=True)):
-            pts = np.asarray(pts, dtype=np.float32)
-            if pts.ndim != 2 or pts.shape[1] != 3:
-                raise ConfigError(f"point_lists[{i}] must have shape (N, 3), got {pts.shape}")
-            pts = pts[np.all(np.isfinite(pts), axis=1)]
+        for st, pts in zip(states, point_lists, strict=True):
             counts.append(len(pts))
             frames.append(pts if len(pts) <= n_max else resample_frame(pts, n_max, st.rng)[0])
         return frames, counts
@@ -451,7 +467,10 @@ class Estimator:
         """Advance each listed track by one frame, all in one forward pass.
 
         ``point_lists[i]`` is track ``track_ids[i]``'s (N_i, 3) points in its current sensor
-        frame (N_i may be 0; rows with NaN/inf are dropped). New ids start a fresh state.
+        frame as float or integer numbers (N_i may be 0: an empty array or list); NaN or inf,
+        a point farther than :data:`MAX_RANGE` from the sensor, or a bool, complex, string or
+        object array raise :class:`ConfigError` naming the track (:func:`check_points`), and
+        a refused step changes no state. New ids start a fresh state.
         Optional hints, each a sequence parallel to ``track_ids`` whose entries may be None:
         ``sizes[i]`` a box (l, w, h) or a length (m) for the input scale (only a
         ``scale_norm="length"`` model uses it; it overrides the points' estimate);
@@ -462,7 +481,8 @@ class Estimator:
         time (s, any origin, the same clock for all the track's steps) for the motion inputs
         of a ``motion_input`` model (a missing or NaN one, or the track's first, counts as
         :attr:`frame_period` after the previous step). Returns one :class:`Estimate` per
-        track, in order.
+        track, in order; :attr:`Estimate.valid` is False while a track has had no frame with
+        points yet (the estimate is then the network's prior around the sensor origin).
         """
         track_ids = [str(t) for t in track_ids]
         if len(track_ids) != len(point_lists):
@@ -475,8 +495,11 @@ class Estimator:
             raise ConfigError("a track id appears twice in one step")
         if not track_ids:
             return []
+        points = [check_points(p, f"point_lists[{i}] (track {t!r})")
+                  for i, (t, p) in enumerate(zip(track_ids, point_lists, strict=True))]
+        _check_hints(len(track_ids), sizes, classes, ego_poses, timestamps)
         states = [self._state(t) for t in track_ids]
-        frames, counts = self._frames(states, point_lists)
+        frames, counts = self._frames(states, points)
         scale = self._scales(states, frames, sizes, classes)
         dts = self._dts(states, timestamps) if self.model.motion else None
         run = self._run_torch if self._engine is None else self._run_engine
@@ -484,6 +507,7 @@ class Estimator:
         result = []
         for i, tid in enumerate(track_ids):
             result.append(Estimate(tid, complete[i], pose[i], len(frames[i])))
+            result[-1].valid = states[i].seen and result[-1].valid
             if scale is not None:
                 result[-1].scale = float(scale[i])
         if ego_poses is not None or self.heading.active_without_poses:
@@ -506,6 +530,62 @@ def check_backend(fast: Estimator) -> bool:
                 log.info("backend %s differs from the reference on this machine", name)
                 return False
     return True
+
+
+def check_points(points, name: str = "points") -> np.ndarray:
+    """``points`` as the (N, 3) float32 array :meth:`Estimator.step` takes, or a
+    :class:`ConfigError` naming ``name`` (e.g. the track).
+
+    Accepts float and integer arrays (or nested lists) of shape (N, 3), and any empty input
+    (``[]``, shape (0,) or (0, 3)) as zero points. Refuses bool, complex, string and object
+    data (numpy would turn them into numbers silently) and points farther than
+    :data:`MAX_RANGE` from the sensor (a unit or frame mistake). Rows with NaN or inf (a
+    sensor's no-return points) are dropped with a warning, as the sweep readers drop them.
+
+    >>> check_points([[1, 2, 3]]).dtype, check_points([]).shape
+    (dtype('float32'), (0, 3))
+    """
+    try:
+        raw = np.asarray(points)
+    except (ValueError, TypeError) as exc:  # ragged nested lists
+        raise ConfigError(f"{name}: not an (N, 3) array of numbers ({exc})") from None
+    if raw.dtype.kind not in "fiu":
+        raise ConfigError(f"{name}: points must be float or integer numbers, got dtype "
+                          f"{raw.dtype} ({_KIND_NAMES.get(raw.dtype.kind, 'not numbers')})")
+    if raw.size == 0 and (raw.ndim == 1 or raw.ndim == 2 and raw.shape[1] == 3):
+        return np.zeros((0, 3), np.float32)
+    if raw.ndim != 2 or raw.shape[1] != 3:
+        raise ConfigError(f"{name}: points must have shape (N, 3), got {raw.shape}")
+    with np.errstate(over="ignore", invalid="ignore"):  # huge values: refused just below
+        pts = np.asarray(raw, dtype=np.float32)
+        far = np.einsum("ij,ij->i", pts, pts)
+    if far.max() <= MAX_RANGE ** 2:  # False for NaN and inf too
+        return pts
+    bad = ~np.isfinite(raw).all(axis=1)
+    if bad.any():  # as the sweep readers do: a sensor's no-return rows, dropped with a word
+        warnings.warn(f"{name}: dropped {int(bad.sum())} of {len(raw)} points that are not "
+                      f"finite (NaN or inf; first at row {int(np.argmax(bad))})", stacklevel=3)
+        raw, pts, far = raw[~bad], pts[~bad], far[~bad]
+        if not len(pts) or far.max() <= MAX_RANGE ** 2:
+            return pts
+    j = int(np.argmax(far))
+    raise ConfigError(f"{name}: point {j} at {tuple(float(v) for v in raw[j])} is more than "
+                      f"{MAX_RANGE:g} m from the sensor; points must be in the sensor frame, "
+                      f"in metres")
+
+
+_KIND_NAMES = {"b": "booleans", "c": "complex numbers", "U": "strings", "S": "bytes",
+               "O": "Python objects", "V": "raw records", "M": "dates", "m": "durations"}
+
+
+def _check_hints(n: int, sizes, classes, ego_poses, timestamps) -> None:
+    """Every per-track hint of a step checked before any state changes (the errors of
+    :func:`_length_hint`, :func:`_class_floor`, :func:`_ego_pose`, :func:`_timestamp`)."""
+    for i in range(n):
+        _length_hint(sizes, i)
+        _class_floor(classes, i)
+        _ego_pose(ego_poses, i)
+        _timestamp(timestamps, i)
 
 
 def _length_hint(sizes: Sequence | None, i: int) -> float | None:

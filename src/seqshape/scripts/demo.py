@@ -13,11 +13,12 @@ from pathlib import Path
 
 import seqshape.demo as _demo
 from seqshape.demo import DemoConfig, run_demo
-from seqshape.evaluation.report import metrics_markdown
+from seqshape.demo.fusion import fusion_verdict, headline_table
 from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 
 HELP = "run the whole pipeline on small generated data and write a report"
-FIELDS = ["preset", "seed", "checkpoint", "baseline", "max_tracks", "emd_every", "workers"]
+FIELDS = ["preset", "vehicles", "tracks_per_vehicle", "seed", "checkpoint", "baseline",
+          "max_tracks", "emd_every", "workers"]
 _MOVED = {"Section": "Section", "DemoContext": "DemoContext", "DemoStep": "DemoStep",
           "STEPS": "STEPS", "step_generate": "step_generate", "step_models": "step_models",
           "step_evaluate": "step_evaluate", "step_amodal": "step_amodal",
@@ -36,11 +37,21 @@ def _announce(text: str) -> None:
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     ctx = run_demo(args.out, DemoConfig(**config_kwargs(args, FIELDS)), announce=_announce)
-    if "metrics" in ctx.state:
-        print(metrics_markdown(ctx.state["metrics"]))
+    print(terminal_summary(ctx.state))
     print(f"report: {ctx.out / 'report.md'} and {ctx.out / 'index.html'} "
           f"({time.perf_counter() - t0:.0f} s)")
     return 0
+
+
+def terminal_summary(state: dict) -> str:
+    """What the terminal shows after the run: the metrics table, what fusion over time buys
+    and the mask table (each when its step ran)."""
+    parts = []
+    if "metrics" in state:
+        parts += [headline_table(state["metrics"]), fusion_verdict(state["metrics"])]
+    if state.get("amodal_table"):
+        parts.append(state["amodal_table"])
+    return "\n".join(parts)
 
 
 def _report_markdown(ctx) -> str:

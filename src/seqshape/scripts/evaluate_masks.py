@@ -1,7 +1,8 @@
 """``seqshape evaluate-masks``: score amodal mask labels against a reference (Table II).
 
 The work is :func:`seqshape.amodal.evaluate.write_mask_report` (files paired by
-:func:`~seqshape.amodal.evaluate.resolve_pairs`).
+:func:`~seqshape.amodal.evaluate.resolve_pairs`); the table's title says whether the reference
+is the exact ground truth of a ``seqshape scenes`` folder, its row names the predictions.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from seqshape.amodal.evaluate import resolve_pairs, write_mask_report
+from seqshape.amodal.evaluate import default_row_name, resolve_pairs, write_mask_report
 
 HELP = "score amodal mask labels against a reference (per-image Hungarian matching on IoU)"
 
@@ -21,7 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="reference KINS JSON (e.g. amodal/SSSS.json), or a directory; "
                              "paired with --pred in order")
     parser.add_argument("--out", required=True, type=Path, help="output directory")
-    parser.add_argument("--name", default="labels", help="row name in the markdown table")
+    parser.add_argument("--name", default=None,
+                        help="row name in the markdown table (default: the prediction file's "
+                             "name, or its folder's for a folder)")
     parser.add_argument("--categories", type=int, nargs="*", default=None,
                         help="category ids to score (default: all)")
     parser.add_argument("--max-distance", type=float, default=None, metavar="M",
@@ -32,6 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     pairs = resolve_pairs(args.pred, args.gt)
-    print(write_mask_report(pairs, args.out, args.name, args.categories, args.max_distance))
+    name = args.name or default_row_name(args.pred)  # a folder given: its name
+    print(write_mask_report(pairs, args.out, name, args.categories, args.max_distance))
     print(f"wrote {args.out / 'metrics.json'}")
     return 0

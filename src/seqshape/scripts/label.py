@@ -21,6 +21,7 @@ import sys
 from pathlib import Path
 
 import seqshape.scripts.export_tracks as export_tracks
+from seqshape._io import contained_path, safe_stem
 from seqshape._runner import run_pool
 from seqshape.amodal.labeler import (
     MODES,
@@ -118,14 +119,14 @@ def _write_results(args, log, results: dict, out: Path, overlays: Path | None) -
     several = len(results) > 1
     lines = []
     for cam, result in results.items():
-        path = out / f"{cam}.json" if several else out
+        path = contained_path(out, f"{safe_stem(cam)}.json") if several else out
         write_labels(path, result)
         t = result.timings
         lines.append(f"{args.mode} {cam}: {len(result.annotations)} instances in "
                      f"{t['frames']} frames, {t['frames'] / max(t['total'], 1e-9):.2f} "
                      f"frames/s -> {path}")
         if overlays is not None:
-            folder = overlays / cam if several else overlays
+            folder = contained_path(overlays, safe_stem(cam)) if several else overlays
             paths = write_overlays(log, result, folder)
             lines.append(f"wrote {len(paths)} overlays to {folder}")
     return lines
@@ -153,8 +154,9 @@ def _label_one(job: tuple[argparse.Namespace, str | None]) -> list[str]:
     results = label_log_cameras(log, cfg, cameras, estimator=_ESTIMATOR.get("est"))
     if name is None:
         return _write_results(args, log, results, args.out, args.overlays)
-    out = args.out / name if len(results) > 1 else args.out / f"{name}.json"
-    overlays = None if args.overlays is None else args.overlays / name
+    stem = safe_stem(name)  # a log name comes from data (nuScenes: scene.json)
+    out = contained_path(args.out, stem if len(results) > 1 else f"{stem}.json")
+    overlays = None if args.overlays is None else contained_path(args.overlays, stem)
     return _write_results(args, log, results, out, overlays)
 
 

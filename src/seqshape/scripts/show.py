@@ -1,10 +1,15 @@
-"""``seqshape show``: a PNG overview and an offline interactive HTML 3D view of one track."""
+"""``seqshape show``: a PNG overview and an offline interactive HTML 3D view of one track.
+
+The files are named after the track id stored in the dataset, made file-name safe
+(:func:`seqshape._io.safe_stem`: ``../x`` becomes ``_x``) and checked to stay inside ``--out``.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from seqshape._io import contained_path, safe_stem
 from seqshape.data import TrackDataset
 from seqshape.errors import ConfigError
 from seqshape.viz import plot_track_png, track_html
@@ -31,9 +36,10 @@ def run(args: argparse.Namespace) -> int:
                               f"(ids look like: {some}, ...)") from None
         track = ds[int(args.track)]
     out = Path(args.out)
-    png = plot_track_png(track, out / f"{track.track_id}.png")
+    stem = safe_stem(track.track_id)
+    png = plot_track_png(track, contained_path(out, f"{stem}.png"))
     print(f"wrote {png}")
     if not args.no_html:
-        html = track_html(track, out / f"{track.track_id}.html")
+        html = track_html(track, contained_path(out, f"{stem}.html"))
         print(f"wrote {html} (offline, open in a browser)")
     return 0

@@ -371,10 +371,14 @@ class Trainer:
 
     def _stage_loop(self, opt, batches: BatchPrefetcher, stage: int) -> None:
         c = self.cfg
-        # the bar counts per-mille of the stage: steps or the wall-clock budget, whichever ends it
-        bar = progress(total=1000, initial=int(1000 * self._progress_fraction(stage)), unit="‰",
-                       desc=f"stage {stage + 1}/3 ({STAGE_NAMES[stage]}, {self.kind})",
+        sc = c.stages[stage]
+        # the bar counts the stage's optimiser steps (its rate in steps/s, frames/s beside it);
+        # a wall-clock budget may end the stage before its last step (the time left beside it)
+        budget = f", budget {sc.time_budget_min:g} min" if sc.time_budget_min else ""
+        bar = progress(total=sc.steps, initial=min(self.state["step"], sc.steps), unit="step",
+                       desc=f"stage {stage + 1}/3 ({STAGE_NAMES[stage]}, {self.kind}{budget})",
                        disable=None if self.is_main else True)
+        frames, t_bar = 0.0, time.monotonic()
         self.model.train()
         t_last = time.monotonic()
         while not self._stage_done(stage):
@@ -385,9 +389,14 @@ class Trainer:
             self.state["elapsed"] = float(_all_reduce_max(
                 self.state["elapsed"] + now - t_last, self.world))
             t_last = now
-            bar.update(int(1000 * min(1.0, self._progress_fraction(stage))) - bar.n)
             step = self.state["step"]
-            bar.set_postfix(step=step, refresh=False)
+            bar.update(1)
+            frames += row["frames"] * self.world
+            postfix = {"frames/s": f"{frames / max(now - t_bar, 1e-9):.0f}"}
+            if sc.time_budget_min:  # the stage ends at its steps or its budget, the first
+                left = max(0.0, 60.0 * sc.time_budget_min - self.state["elapsed"])
+                postfix["budget left"] = f"{int(left // 60)}:{int(left % 60):02d}"
+            bar.set_postfix(postfix, refresh=False)
             if self.is_main:
                 row["frames"] *= self.world
                 self.runlog.train_row(stage, step, self.state["global_step"], row,

@@ -18,6 +18,7 @@ render when using a new source: a car facing backwards needs the opposite ``forw
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -53,33 +54,117 @@ def canonical_rotation(up: str = "z", forward: str = "x") -> np.ndarray:
 
 
 def _read_mesh(path: Path) -> trimesh.Trimesh:
-    """Read ``path`` into one geometry-only mesh; DataError naming the file on any problem."""
+    """Read ``path`` into one geometry-only mesh; DataError naming the file on any problem.
+
+    Refused: an empty or unreadable file, a file holding no triangles, face indices out of
+    range (OBJ's 1-based index 0, which trimesh would read as vertex 1, included), NaN or
+    infinite vertices, coordinates so large that areas overflow, and degenerate meshes: no
+    face of non-zero area, or no extent along one of the axes (a flat mesh: zero height...).
+    """
     if not path.is_file():
         raise DataError(path, "no such file")
     if path.stat().st_size == 0:
         raise DataError(path, "file is empty")
+    if path.suffix.lower() == ".obj":
+        _check_obj_indices(path)
     try:
         loaded = trimesh.load(str(path), force=None, process=False)
+        if isinstance(loaded, trimesh.Scene):
+            geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
+            loaded = trimesh.util.concatenate(geoms) if geoms else None
     except ImportError as exc:  # trimesh falls back on charset detection for non-UTF-8 text
         raise DataError(path, "cannot decode the file as text: not a valid "
                         f"{path.suffix.lower()[1:].upper()} file ({exc})") from exc
+    except IndexError as exc:
+        if path.suffix.lower() == ".obj":
+            _check_obj_indices(path, out_of_range=True)  # names the index and its line
+        raise DataError(path, f"face indices out of range ({exc})") from exc
     except Exception as exc:  # trimesh raises many types on malformed input
         raise DataError(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from exc
-    if isinstance(loaded, trimesh.Scene):
-        geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
-        loaded = trimesh.util.concatenate(geoms) if geoms else None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         what = type(loaded).__name__ if loaded is not None else "nothing"
         raise DataError(path, f"no triangle faces found (read {what}); is this a mesh file?")
+    verts, faces = _checked_arrays(path, loaded)
+    with np.errstate(all="ignore"):  # overflowing areas are refused below, not warned about
+        mesh = trimesh.Trimesh(verts, faces, process=True)
+        mesh.update_faces(mesh.nondegenerate_faces())
+        mesh.remove_unreferenced_vertices()
+        area = float(mesh.area) if len(mesh.faces) else 0.0
+    if not np.isfinite(area):
+        raise DataError(path, "coordinates too large: the mesh's area overflows")
+    if len(mesh.faces) == 0 or area <= 0:
+        raise DataError(path, "mesh has no faces with non-zero area")
+    _check_extent(path, mesh.vertices)
+    return mesh
+
+
+def _checked_arrays(path: Path, loaded: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """``(vertices (V, 3) float64, faces (F, 3) int64)`` of a loaded mesh: finite vertices,
+    triangle faces indexing existing vertices; DataError naming the file otherwise."""
     verts = np.asarray(loaded.vertices, dtype=np.float64)
+    faces = np.asarray(loaded.faces)
+    if verts.ndim != 2 or verts.shape[1] != 3 or len(verts) == 0:
+        raise DataError(path, f"vertices of shape {verts.shape}, expected (V, 3)")
     if not np.all(np.isfinite(verts)):
         raise DataError(path, "vertices contain NaN or infinite values")
-    mesh = trimesh.Trimesh(verts, np.asarray(loaded.faces), process=True)
-    mesh.update_faces(mesh.nondegenerate_faces())
-    mesh.remove_unreferenced_vertices()
-    if len(mesh.faces) == 0 or mesh.area <= 0:
-        raise DataError(path, "mesh has no faces with non-zero area")
-    return mesh
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise DataError(path, f"faces of shape {faces.shape} ({faces.dtype}), expected (F, 3) "
+                              "vertex indices")
+    bad = (faces < 0) | (faces >= len(verts))
+    if bad.any():
+        f = int(np.flatnonzero(bad.any(axis=1))[0])
+        raise DataError(path, f"face {f} refers to vertex {int(faces[bad][0])}, out of range "
+                              f"for {len(verts)} vertices")
+    return verts, faces.astype(np.int64)
+
+
+def _check_extent(path: Path, vertices: np.ndarray) -> None:
+    """Refuse a flat mesh: no extent (relative to its largest) along one of the file's axes."""
+    extent = np.ptp(vertices, axis=0)
+    flat = extent <= 1e-9 * extent.max()
+    if flat.any():
+        axes = ", ".join("xyz"[int(a)] for a in np.flatnonzero(flat))
+        raise DataError(path, f"mesh is flat: no extent along the file's {axes} axis "
+                              f"(extents {np.round(extent, 6).tolist()}); a vehicle needs "
+                              "length, width and height")
+
+
+_OBJ_VERTEX = re.compile(rb"^[ \t]*v[ \t]", re.MULTILINE)
+_OBJ_FACE = re.compile(rb"^[ \t]*f[ \t]+([^\r\n#]*)", re.MULTILINE)
+_OBJ_INDEX = re.compile(rb"(?<!\S)([+-]?\d+)(?=/|\s|$)")  # the vertex index of v, v/vt, v//vn
+_BEFORE_ZERO = np.zeros(256, dtype=bool)  # bytes that may come before an index 0 token
+_BEFORE_ZERO[list(b" \t+-")] = True
+_AFTER_ZERO = np.zeros(256, dtype=bool)  # and after it
+_AFTER_ZERO[list(b" \t\r\n/")] = True
+
+
+def _may_hold_zero_index(data: bytes) -> bool:
+    """Whether the OBJ text ``data`` holds a token ``0``, ``-0`` or ``+0`` (possibly followed by
+    ``/``) anywhere: a fast test (numpy over the bytes) before the exact scan of face lines."""
+    b = np.frombuffer(b" " + data + b"\n", dtype=np.uint8)  # a space before, a newline after
+    zeros = np.flatnonzero(b[1:-1] == ord("0")) + 1
+    return bool(np.any(_BEFORE_ZERO[b[zeros - 1]] & _AFTER_ZERO[b[zeros + 1]]))
+
+
+def _check_obj_indices(path: Path, out_of_range: bool = False) -> None:
+    """Refuse OBJ faces whose vertex index is 0 (OBJ indices are 1-based; trimesh would
+    silently read vertex 1) or, with ``out_of_range`` (after trimesh failed on them), beyond
+    the vertex count; DataError naming the file and the line. Texture and normal indices
+    (``v/vt/vn``) are not checked; tokens that are not integers are left to trimesh."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise DataError(path, f"unreadable file ({exc.strerror or exc})") from None
+    if not out_of_range and not _may_hold_zero_index(data):
+        return  # the common case
+    n = len(_OBJ_VERTEX.findall(data))
+    for m in _OBJ_FACE.finditer(data):  # the first bad index, with its line
+        for head in _OBJ_INDEX.findall(m.group(1)):
+            index = int(head)
+            if index == 0 or not -n <= index <= n:
+                line = data.count(b"\n", 0, m.start()) + 1
+                raise DataError(path, f"face vertex index {index} is out of range for {n} "
+                                      "vertices (OBJ indices are 1-based)", line=line)
 
 
 def load_vehicle(path, up: str = "z", forward: str = "x", scale: float = 1.0,
