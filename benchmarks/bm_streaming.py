@@ -16,7 +16,7 @@ Warm-up (one step per track and five single-track steps per backend, plus the ba
 set-up), then the median and spread (min-max) of ``--repeats`` passes; fixed seeds
 (``--seed``: the clouds and an untrained network's weights).
 
-Run: ``python benchmarks/bm_streaming.py [--backends torch onnx] [--threads 1] [--busy 0]
+Run: ``python benchmarks/bm_streaming.py [--backends torch onnx onnx-int8] [--threads 1] [--busy 0]
 [--weights sequential baseline] [--repeats 5] [--seed 0]``
 """
 
@@ -131,7 +131,7 @@ def main() -> None:
     ap.add_argument("--busy", type=int, default=0, help="busy-looping processes to run beside")
     ap.add_argument("--weights", nargs="+", default=["sequential", "baseline"],
                     help="shipped names, weights files, or 'untrained' (random small model)")
-    ap.add_argument("--backends", nargs="+", default=["torch", "onnx", "torch-lean"],
+    ap.add_argument("--backends", nargs="+", default=["torch", "onnx", "torch-lean", "onnx-int8"],
                     choices=BACKENDS, help="the first is the reference of the ratio columns")
     args = ap.parse_args()
     print(f"torch {torch.__version__}, threads {args.threads}, busy processes {args.busy}, "

@@ -18,8 +18,10 @@ from seqshape.model import Estimator, ModelConfig, ShapePoseNet  # noqa: E402
 from seqshape.model.offline import (  # noqa: E402
     OfflineConfig,
     OfflineEstimator,
+    chunk_tracks,
     consistent_flips,
     estimate_track,
+    estimate_tracks,
 )
 
 CFG = ModelConfig(num_points=32, encoder1=(16, 32), encoder2=(32, 32), hidden=24,
@@ -308,3 +310,107 @@ def test_label_cli_flag_selects_online():
     add_arguments(parser)
     assert parser.parse_args(["--sequence", "0"]).online is False
     assert parser.parse_args(["--sequence", "0", "--online"]).online is True
+
+
+def _many_tracks(seed: int = 5) -> list[dict]:
+    """Tracks of 1 to 12 frames (some over N points, one with an empty frame, one with only
+    empty frames, one with none), with timestamps, hints and ego poses on some."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i, n in enumerate([12, 1, 7, 12, 3, 9, 5]):
+        tr = box_track(f"m{i}", "val", rng, n, 2 if i == 2 else None)
+        item = {"points": tr.points} if i in (1, 5) else {"points": tr.points,
+                                                         "track_id": tr.track_id}
+        if i % 2 == 0:
+            item["timestamps"] = 50.0 + tr.timestamps + 0.03 * (np.arange(n) % 2)
+        if i % 3 == 0:
+            item["size"] = tuple(tr.size)
+        if i == 4:
+            item["cls"] = "truck"
+        if i == 3:
+            item["ego_poses"] = _track(frames=n)[1]
+        out.append(item)
+    out.append({"points": [np.zeros((0, 3), np.float32)] * 4, "track_id": "blank"})
+    out.append({"points": [], "track_id": "none"})
+    return out
+
+
+@pytest.mark.parametrize("mode,cfg", [("online", None)] + [("offline", c) for c in CONFIGS],
+                         ids=lambda c: c if isinstance(c, str) else getattr(c, "name", "-"))
+def test_estimate_tracks_equals_estimate_track_per_track(mode, cfg):
+    """Batched passes (chunks of several tracks padded to the longest, a chunk bound that
+    splits them) give each track what its own pass gives, to float rounding (1e-5 m / rad:
+    the batched products may sum in another order; a wrong padding, state or time step moves
+    estimates by centimetres); with every model option on, and the shipped default."""
+    net_cfg = ModelConfig(**{**CFG.to_dict(), "motion_input": True, "scale_norm": "length",
+                             "frame_skip": True})
+    est = _estimator(cfg=net_cfg)
+    with torch.no_grad():  # the zero-initialised extensions get weights, so they matter
+        for p in est.model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    tracks = _many_tracks()
+    for chunk in (24, 10_000):
+        batched = estimate_tracks(est, tracks, mode=mode, config=cfg, chunk_frames=chunk)
+        assert len(batched) == len(tracks)
+        for tr, got in zip(tracks, batched, strict=True):
+            own = estimate_track(est, mode=mode, config=cfg, **tr)
+            ids = [tr.get("track_id", "track")] * len(tr["points"])  # two share the default
+            assert [e.track_id for e in got] == ids
+            _close(got, own)
+            for a, b in zip(got, own, strict=True):
+                assert a.scale == b.scale
+
+
+def test_chunk_tracks_takes_each_track_once_longest_first_within_the_bound():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        lengths = rng.integers(1, 40, size=rng.integers(1, 30)).tolist()
+        bound = int(rng.integers(1, 200))
+        chunks = chunk_tracks(lengths, bound)
+        assert sorted(i for c in chunks for i in c) == list(range(len(lengths)))
+        firsts = [lengths[c[0]] for c in chunks]
+        assert firsts == sorted(firsts, reverse=True)
+        for c in chunks:
+            assert lengths[c[0]] == max(lengths[i] for i in c)
+            assert len(c) == 1 or len(c) * lengths[c[0]] <= bound
+    assert chunk_tracks([], 10) == []
+
+
+def test_estimate_tracks_rejects_bad_tracks():
+    est = _estimator()
+    points, _ = _track(frames=3)
+    for bad in ([points], [{"timestamps": [0.0]}], [{"points": points, "colour": "red"}]):
+        with pytest.raises(ConfigError, match=r"tracks\[0\]"):
+            estimate_tracks(est, bad)
+    with pytest.raises(ConfigError, match="chunk_frames"):
+        estimate_tracks(est, [{"points": points}], chunk_frames=0)
+    with pytest.raises(ConfigError, match="mode"):
+        estimate_tracks(est, [{"points": points}], mode="sideways")
+    with pytest.raises(ConfigError, match="timestamps"):
+        estimate_tracks(est, [{"points": points}, {"points": points, "timestamps": [0.0]}])
+    assert estimate_tracks(est, []) == []
+
+
+def test_offline_estimator_estimates_many_tracks():
+    est = _estimator()
+    off = OfflineEstimator(est, OfflineConfig(shape="two-pass", pose="online"))
+    tracks = _many_tracks()[:3]
+    for tr, got in zip(tracks, off.estimate_tracks(tracks), strict=True):
+        _close(got, off.estimate_track(**tr))
+
+
+def test_offline_estimates_are_valid_from_the_first_detection_and_drop_nan_rows():
+    """Frames before a track's first points are marked not valid in both modes, as
+    Estimator.step marks them; NaN rows are dropped with a warning, as step drops them."""
+    est = _estimator()
+    rng = np.random.default_rng(5)
+    pts = [np.zeros((0, 3), np.float32)] * 2 + [
+        (rng.normal(size=(30, 3)) + [8, 0, 0]).astype(np.float32) for _ in range(3)]
+    for mode in ("online", "offline"):
+        out = estimate_track(est, pts, mode=mode)
+        assert [e.valid for e in out] == [False, False, True, True, True]
+    nan = [p.copy() for p in pts]
+    nan[3][:4] = np.nan
+    with pytest.warns(UserWarning, match=r"points\[3\] \(track 'car'\): dropped 4 of 30"):
+        out = estimate_track(est, nan, mode="online", track_id="car")
+    assert [e.num_points for e in out] == [0, 0, 30, 26, 30]

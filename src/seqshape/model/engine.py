@@ -20,6 +20,9 @@ Backends (:data:`BACKENDS`), each tested against the PyTorch reference (the mode
   ONNX Runtime (optional extra ``seqshape[fast]``); float32, within 1e-4 m of the reference.
 * ``"torch-lean"``: :class:`StepGraph` run by PyTorch in float32 (the reference's arithmetic
   without its module and masking overhead).
+* ``"onnx-int8"``: ``"onnx"`` with the shape decoder's weights in int8 (ONNX Runtime's dynamic
+  quantisation, :func:`quantize_onnx`); the pose stays float32, shape points within 3 cm
+  (:data:`INT8_TOLERANCE`); paper-val metrics within 0.3 % of the reference.
 
 ``"auto"`` (:func:`select_backend`) takes the first of :data:`AUTO_ORDER` whose runtime is
 installed and whose outputs match the reference on this machine
@@ -32,6 +35,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import tempfile
 import warnings
 import zlib
 from collections.abc import Callable
@@ -49,7 +53,7 @@ from seqshape.model.transforms import place_points
 log = logging.getLogger(__name__)
 
 #: Every backend name :meth:`Estimator.load` accepts.
-BACKENDS = ("auto", "torch", "onnx", "torch-lean")
+BACKENDS = ("auto", "torch", "onnx", "torch-lean", "onnx-int8")
 #: Candidates of ``backend="auto"``, fastest first (measured in docs/model.md,
 #: "Inference backends (issue 17)"); the reference ``"torch"`` is the fallback.
 AUTO_ORDER = ("onnx", "torch-lean")
@@ -58,6 +62,11 @@ GRAPH_INPUTS = ("points", "lengths", "hidden", "mean", "seen", "scale", "dts", "
 GRAPH_OUTPUTS = ("complete", "pose", "hidden_out", "mean_out", "seen_out", "gap_out")
 #: Grouping of the tracks of one step by point count (:func:`length_buckets`).
 BUCKET_FILL, BUCKET_MIN_ROWS = 0.75, 16
+#: The layers whose weights ``"onnx-int8"`` quantises (:func:`quantize_onnx`): the shape
+#: decoder, 70 % of the weights and of the bytes a single-track step reads. Quantising the
+#: encoder, the GRU or the pose decoder as well turns some tracks' yaws by tens of degrees
+#: (docs/model.md, "Inference backends (issue 17)").
+INT8_LAYERS = ("shape_decoder",)
 #: ONNX opset of the export.
 ONNX_OPSET = 17
 #: Agreement of a fast backend with the reference: shape points (m), pose centre (m), yaw
@@ -67,6 +76,12 @@ ONNX_OPSET = 17
 #: itself, batched against track by track, differs by up to 0.2 mm, 0.01 mm, 7e-5 rad (the
 #: yaw of a nearly degenerate (cos, sin) output moves most; the shape follows it).
 TOLERANCE = (2e-3, 2e-4, 1e-3)
+#: The same for ``"onnx-int8"``: its pose is float32 (the tolerance above), its shape points
+#: move by the int8 rounding of the shape decoder's weights and inputs: measured on the shipped
+#: weights, 100 tracks over 10 steps, up to 14 mm (median 7.5 mm; it depends on the other
+#: tracks of the pass, whose range sets the inputs' quantisation); a wrong scale or zero point
+#: of the quantisation moves them by decimetres.
+INT8_TOLERANCE = (3e-2, TOLERANCE[1], TOLERANCE[2])
 
 
 class StepGraph(nn.Module):
@@ -185,6 +200,7 @@ class TorchGraphEngine:
     None: 1)."""
 
     name = "torch-lean"
+    tolerance = TOLERANCE
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         self.threads = threads or 1
@@ -206,26 +222,87 @@ class OnnxEngine:
     """
 
     name = "onnx"
+    #: (shape, centre, yaw) agreement with the reference (:data:`TOLERANCE`).
+    tolerance = TOLERANCE
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         ort = require("onnxruntime", "the ONNX inference backend", "seqshape[fast]")
         require("onnx", "exporting the network to ONNX", "seqshape[fast]")
         self.threads = threads
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = int(threads or 1)
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        opts.log_severity_level = 3
-        self.session = ort.InferenceSession(export_onnx(model), opts,
+        self.session = ort.InferenceSession(self.graph_bytes(model), _session_options(ort, threads),
                                             providers=["CPUExecutionProvider"])
         self._inputs = [i.name for i in self.session.get_inputs()]
+
+    def graph_bytes(self, model: ShapePoseNet) -> bytes:
+        """The ONNX model this engine runs."""
+        return export_onnx(model)
 
     def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
         """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""
         arrays = inputs.arrays()
         return tuple(self.session.run(None, {k: arrays[k] for k in self._inputs}))
+
+
+class OnnxInt8Engine(OnnxEngine):
+    """``"onnx"`` with the weights of the layers :data:`INT8_LAYERS` quantised to int8
+    (``"onnx-int8"``, :func:`quantize_onnx`), built in memory at load time (about 1 s)."""
+
+    name = "onnx-int8"
+    tolerance = INT8_TOLERANCE
+
+    def graph_bytes(self, model: ShapePoseNet) -> bytes:
+        return quantize_onnx(export_onnx(model), INT8_LAYERS)
+
+
+def _session_options(ort, threads: int | None):
+    """ONNX Runtime session options of the ONNX engines (see :class:`OnnxEngine`)."""
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = int(threads or 1)
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    opts.log_severity_level = 3
+    return opts
+
+
+def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes:
+    """``graph`` (ONNX bytes of :func:`export_onnx`) with the weights of the matrix products
+    of ``layers`` (submodule names of :class:`StepGraph`, e.g. ``"shape_decoder"``; None:
+    every one) quantised to int8 per output channel by ONNX Runtime's dynamic quantisation:
+    their inputs are quantised to uint8 at run time, per call over the whole batch.
+
+    Raises :class:`RuntimeError` when the quantiser did not convert exactly those products
+    (a change of the exporter's node names would otherwise quantise nothing silently)."""
+    onnx = require("onnx", "exporting the network to ONNX", "seqshape[fast]")
+    quant = require("onnxruntime.quantization", "the int8 inference backend", "seqshape[fast]")
+    proto = onnx.load_from_string(graph)
+    nodes = [n.name for n in proto.graph.node if n.op_type in ("Gemm", "MatMul")
+             and (layers is None or any(n.name.startswith(f"/{name}/") for name in layers))]
+    if not nodes:  # (an empty list would tell the quantiser to convert every product)
+        raise RuntimeError(f"int8 quantisation: no matrix product in the layers {layers}")
+    # the quantiser first splits a Gemm into MatMul + Add, renaming it "<name>_MatMul"
+    names = nodes + [f"{n}_MatMul" for n in nodes]
+    root = logging.getLogger()
+    level = root.level
+    with tempfile.TemporaryDirectory() as tmp:
+        src, dst = f"{tmp}/float.onnx", f"{tmp}/int8.onnx"
+        with open(src, "wb") as f:
+            f.write(graph)
+        root.setLevel(logging.ERROR)  # its advice to pre-process goes to the root logger
+        try:
+            quant.quantize_dynamic(src, dst, weight_type=quant.QuantType.QInt8,
+                                   per_channel=True, op_types_to_quantize=["MatMul", "Gemm"],
+                                   nodes_to_quantize=names)
+        finally:
+            root.setLevel(level)
+        with open(dst, "rb") as f:
+            out = f.read()
+    done = sum(n.op_type == "MatMulInteger" for n in onnx.load_from_string(out).graph.node)
+    if done != len(nodes):
+        raise RuntimeError(f"int8 quantisation converted {done} of the {len(nodes)} matrix "
+                           f"products of {layers}")
+    return out
 
 
 def export_onnx(model: ShapePoseNet) -> bytes:
@@ -330,6 +407,8 @@ def make_engine(model: ShapePoseNet, name: str, threads: int | None = None):
     """The engine of backend ``name`` (not ``"auto"`` nor ``"torch"``) for ``model``."""
     if name == "onnx":
         return OnnxEngine(model, threads)
+    if name == "onnx-int8":
+        return OnnxInt8Engine(model, threads)
     if name == "torch-lean":
         return TorchGraphEngine(model, threads)
     raise ConfigError(f"unknown inference backend {name!r}; choose from {BACKENDS}")

@@ -51,16 +51,17 @@ from __future__ import annotations
 
 import math
 import zlib
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from seqshape.data.windows import points_length, resample_frame
 from seqshape.errors import ConfigError
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
-from seqshape.model.estimator import Estimate, _class_floor, _length_hint
+from seqshape.model.estimator import Estimate, _class_floor, _length_hint, check_points
 from seqshape.model.heading import (
     HeadingConfig,
     HeadingFilter,
@@ -144,64 +145,169 @@ def estimate_track(estimator, points: Sequence[np.ndarray], timestamps=None, siz
 
     Returns:
         list of :class:`~seqshape.model.Estimate`, in each frame's sensor frame.
+
+    Many tracks at once: :func:`estimate_tracks` (the same estimates, fewer passes).
+    """
+    track = {"points": points, "timestamps": timestamps, "size": size, "cls": cls,
+             "ego_poses": ego_poses, "track_id": track_id}
+    return estimate_tracks(estimator, [track], mode, config)[0]
+
+
+#: The keys of a track of :func:`estimate_tracks` (the arguments of :func:`estimate_track`).
+TRACK_KEYS = ("points", "timestamps", "size", "cls", "ego_poses", "track_id")
+#: Padded frames (tracks x longest track) of one batched pass of :func:`estimate_tracks`.
+#: Measured (docs/model.md, "Inference backends (issue 17)"): one track's pass is already a
+#: batch of its frames, and larger passes were slower per frame (the encoder's per-point
+#: features of more frames leave the caches: 512 frames cost 1.2-1.3x the CPU time of one
+#: pass per track), so only short tracks share a pass.
+CHUNK_FRAMES = 64
+
+
+def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
+                    config: OfflineConfig | None = None,
+                    chunk_frames: int = CHUNK_FRAMES) -> list[list[Estimate]]:
+    """:func:`estimate_track` of many tracks: the network runs over chunks of tracks in one
+    batched pass each, not one pass per track.
+
+    Args:
+        estimator, mode, config: as in :func:`estimate_track`.
+        tracks: per track a mapping of :func:`estimate_track`'s per-track arguments
+            (:data:`TRACK_KEYS`: ``points`` required; ``timestamps``, ``size``, ``cls``,
+            ``ego_poses``, ``track_id`` optional, with its defaults).
+        chunk_frames: at most this many padded frames (tracks times the chunk's longest
+            track) per pass, a longer track alone; tracks are chunked longest first, so
+            tracks of similar lengths share a pass.
+
+    Returns:
+        per track, in order, what :func:`estimate_track` returns for it (equal within float
+        rounding: the batched matrix products may sum in another order).
     """
     if mode not in MODES:
         raise ConfigError(f"mode must be one of {MODES}, got {mode!r}")
+    if int(chunk_frames) < 1:
+        raise ConfigError(f"chunk_frames must be >= 1, got {chunk_frames!r}")
     cfg = config or OfflineConfig()
-    frames, raw = _frames(estimator, points, track_id)
-    n_frames = len(frames)
-    if n_frames == 0:
-        return []
-    egos = _ego_list(ego_poses, n_frames)
-    times = _times(timestamps, n_frames)
-    counts = np.array([len(f) for f in frames], dtype=np.int64)
+    preps = [_prepare(estimator, _track_args(track, i)) for i, track in enumerate(tracks)]
+    live = [p for p in preps if p.frames]
     model = estimator.model
-    scales = _scales(model, frames, size, cls)
-    batch, lengths = _batch(frames)
-    motion = _motion(estimator, raw, times)
-    first = _run(model, batch, lengths, scales, motion)
-    offline = mode == "offline" and model.recurrent and counts.any()
+    for p, first in zip(live, _run_many(model, [_Pass(p.frames, p.scales, p.motion)
+                                                for p in live], chunk_frames), strict=True):
+        p.passes["online"] = first
+    offline = [p for p in live if mode == "offline" and model.recurrent and p.counts.any()]
+    jobs, owners = [], []
+    for p in offline:
+        if cfg.two_pass:
+            last = int(np.flatnonzero(p.counts)[-1])
+            final = None if p.scales is None else np.full(len(p.frames), p.scales[last])
+            first = p.passes["online"]
+            jobs.append(_Pass(p.frames, final, p.motion, first["hidden"], first["gap"]))
+            owners.append((p, "two-pass"))
+        if "bidirectional" in (cfg.shape, cfg.pose):
+            jobs.append(_backward_pass(estimator, p))
+            owners.append((p, "backward"))
+    for (p, key), out in zip(owners, _run_many(model, jobs, chunk_frames), strict=True):
+        p.passes[key] = out
+    return [_assemble(estimator, p, cfg, p in offline) if p.frames else [] for p in preps]
+
+
+@dataclass(eq=False)
+class _Track:
+    """One track of :func:`estimate_tracks` as the network gets it, and its passes."""
+
+    track_id: str
+    frames: list[np.ndarray]  # at most N finite points per frame
+    raw: np.ndarray  # (T,) finite points per frame before the subsets
+    egos: list | None
+    times: np.ndarray | None
+    counts: np.ndarray  # (T,) points per frame the network gets
+    scales: np.ndarray | None  # (T,) input scales of a scale_norm="length" model
+    motion: dict  # (1, T) motion inputs of a motion_input model
+    size: object
+    cls: str | None
+    passes: dict = field(default_factory=dict)
+
+
+@dataclass(eq=False)
+class _Pass:
+    """One pass of the network over one track: its frames, scales, motion inputs and the
+    state it starts from (None: a fresh track)."""
+
+    frames: list[np.ndarray]
+    scales: np.ndarray | None
+    motion: dict
+    hidden: torch.Tensor | None = None  # (1, S)
+    gap: torch.Tensor | None = None  # (1,)
+
+
+def _track_args(track: Mapping, i: int) -> dict:
+    if not isinstance(track, Mapping) or "points" not in track:
+        raise ConfigError(f"tracks[{i}] must be a mapping with 'points' (and optionally "
+                          f"{', '.join(TRACK_KEYS[1:])})")
+    unknown = sorted(set(track) - set(TRACK_KEYS))
+    if unknown:
+        raise ConfigError(f"tracks[{i}]: unknown keys {unknown}; expected {TRACK_KEYS}")
+    return {"timestamps": None, "size": None, "cls": None, "ego_poses": None,
+            "track_id": "track", **track}
+
+
+def _prepare(estimator, args: dict) -> _Track:
+    """The checked inputs of one track (:func:`estimate_track`'s arguments)."""
+    track_id = args["track_id"]
+    frames, raw = _frames(estimator, args["points"], track_id)
+    n = len(frames)
+    egos = _ego_list(args["ego_poses"], n) if n else None
+    times = _times(args["timestamps"], n) if n else None
+    model = estimator.model
+    scales = _scales(model, frames, args["size"], args["cls"]) if n else None
+    return _Track(track_id, frames, raw, egos, times,
+                  np.array([len(f) for f in frames], dtype=np.int64), scales,
+                  _motion(estimator, raw, times) if n else {}, args["size"], args["cls"])
+
+
+def _backward_pass(estimator, p: _Track) -> _Pass:
+    """The network's pass over the reversed track (``bidirectional``)."""
+    back = p.frames[::-1]
+    times = None if p.times is None else p.times[-1] - p.times[::-1]
+    return _Pass(back, _scales(estimator.model, back, p.size, p.cls),
+                 _motion(estimator, p.raw[::-1], times))
+
+
+def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[Estimate]:
+    """A track's estimates from its passes (the offline pieces of ``cfg``; the first pass
+    with the online heading step when not ``offline``)."""
+    first = p.passes["online"]
     if not offline:
-        return _finish(estimator, track_id, first["complete"], first["pose"], counts, scales,
-                       egos, None)
-    last = int(np.flatnonzero(counts)[-1])
+        return _finish(estimator, p.track_id, first["complete"], first["pose"], p.counts,
+                       p.scales, p.egos, None)
+    last = int(np.flatnonzero(p.counts)[-1])
     passes = {"online": first}
     if cfg.two_pass:
-        final_scale = None if scales is None else np.full(n_frames, scales[last])
-        second = _run(model, batch, lengths, final_scale, motion, hidden=first["hidden"],
-                      gap=first["gap"])
+        second = p.passes["two-pass"]
         for key in ("complete", "pose"):  # from the last detection on, pass 1 saw it all
             second[key][last:] = first[key][last:]
         passes["two-pass"] = second
     if "bidirectional" in (cfg.shape, cfg.pose):
-        passes["bidirectional"] = _bidirectional(
-            model, frames, first, size, cls,
-            _motion(estimator, raw[::-1], None if times is None else times[-1] - times[::-1]))
+        passes["bidirectional"] = _bidirectional(p.frames, first, p.passes["backward"])
     poses = passes[cfg.pose]["pose"].copy()
     if cfg.smooth:
-        poses = _smooth(poses, counts > 0, egos, times)
+        poses = _smooth(poses, p.counts > 0, p.egos, p.times)
     if cfg.shape == "final":
         complete = np.broadcast_to(first["complete"][last], first["complete"].shape)
         own = np.broadcast_to(first["pose"][last], poses.shape)
     else:
         complete, own = passes[cfg.shape]["complete"], passes[cfg.shape]["pose"]
     complete = _place(complete, own, poses)
-    flips = (consistent_flips(poses, egos, counts > 0, estimator.heading, cfg.vote_decay)
+    flips = (consistent_flips(poses, p.egos, p.counts > 0, estimator.heading, cfg.vote_decay)
              if cfg.heading else None)
-    return _finish(estimator, track_id, complete, poses, counts, scales, egos, flips)
+    return _finish(estimator, p.track_id, complete, poses, p.counts, p.scales, p.egos, flips)
 
 
-def _bidirectional(model, frames: list[np.ndarray], first: dict, size, cls,
-                   motion: dict) -> dict:
+def _bidirectional(frames: list[np.ndarray], first: dict, back: dict) -> dict:
     """Per frame the forward (first-pass) and the backward estimate (the network run over the
-    reversed track) combined: the centres averaged with weights the detections each has seen
-    (frames with points up to t forwards, from t backwards), the yaws likewise when they agree
-    within 90 degrees, else the better-informed one's; the shape of the better-informed
-    direction."""
-    back_frames = frames[::-1]
-    scales = _scales(model, back_frames, size, cls)
-    batch, lengths = _batch(back_frames)
-    back = _run(model, batch, lengths, scales, motion)
+    reversed track, ``back``) combined: the centres averaged with weights the detections each
+    has seen (frames with points up to t forwards, from t backwards), the yaws likewise when
+    they agree within 90 degrees, else the better-informed one's; the shape of the
+    better-informed direction."""
     b_pose, b_complete = back["pose"][::-1], back["complete"][::-1]
     has = np.array([len(f) > 0 for f in frames], dtype=np.float64)
     w_f, w_b = np.cumsum(has), np.cumsum(has[::-1])[::-1]
@@ -260,12 +366,7 @@ def _frames(estimator, points: Sequence[np.ndarray], track_id: str
     rng = np.random.default_rng([estimator.seed, zlib.crc32(str(track_id).encode("utf-8"))])
     out, raw = [], []
     for i, pts in enumerate(points):
-        pts = np.asarray(pts, dtype=np.float32)
-        if pts.size == 0:
-            pts = pts.reshape(0, 3)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise ConfigError(f"points[{i}] must have shape (N, 3), got {pts.shape}")
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        pts = check_points(pts, f"points[{i}] (track {track_id!r})")  # as Estimator.step
         raw.append(len(pts))
         out.append(pts if len(pts) <= n_max else resample_frame(pts, n_max, rng)[0])
     return out, np.asarray(raw, dtype=np.int64)
@@ -317,17 +418,6 @@ def _scales(model, frames: list[np.ndarray], size, cls) -> np.ndarray | None:
     return np.asarray(out, dtype=np.float64)
 
 
-def _batch(frames: list[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
-    """(1, T, N, 3) points padded cyclically per frame and (1, T) lengths."""
-    lengths = [len(f) for f in frames]
-    n = max(1, max(lengths))
-    batch = np.zeros((1, len(frames), n, 3), np.float32)
-    for t, f in enumerate(frames):
-        if len(f):
-            batch[0, t] = np.resize(f, (n, 3))
-    return torch.from_numpy(batch), torch.tensor([lengths], dtype=torch.int64)
-
-
 def _motion(estimator, raw: np.ndarray, times: np.ndarray | None) -> dict:
     """The motion inputs of a ``motion_input`` network for the whole track, as
     :meth:`Estimator.step` gives them frame by frame (empty for other networks): ``counts``
@@ -339,25 +429,80 @@ def _motion(estimator, raw: np.ndarray, times: np.ndarray | None) -> dict:
     dts = np.full(len(raw), period)
     if times is not None and len(times) > 1:
         dts[1:] = np.diff(times)
-    return {"counts": torch.as_tensor(raw, dtype=torch.int64)[None],
+    return {"counts": torch.tensor(raw.tolist(), dtype=torch.int64)[None],
             "dts": torch.as_tensor(dts, dtype=torch.float64).float()[None]}
 
 
-def _run(model, batch: torch.Tensor, lengths: torch.Tensor, scales: np.ndarray | None,
-         motion: dict, hidden: torch.Tensor | None = None,
-         gap: torch.Tensor | None = None) -> dict:
-    """One pass of the network over the whole track from ``hidden`` (None: a fresh track):
-    numpy ``complete`` (T, K, 3) float32, ``pose`` (T, 4) float64, and the final ``hidden``
-    and ``gap`` (time since the last detection; None for networks without it)."""
-    kw = dict(motion)
-    if scales is not None:
-        kw["scale"] = torch.as_tensor(scales, dtype=torch.float32)[None]
-    if gap is not None and motion:
-        kw["gap"] = gap
+def _run_many(model, passes: list[_Pass], chunk_frames: int) -> list[dict]:
+    """:func:`_run_chunk` over chunks of ``passes`` (longest first, at most ``chunk_frames``
+    padded frames each, :func:`chunk_tracks`); the outputs in the order of ``passes``."""
+    out: list[dict | None] = [None] * len(passes)
+    for chunk in chunk_tracks([len(p.frames) for p in passes], chunk_frames):
+        for i, result in zip(chunk, _run_chunk(model, [passes[i] for i in chunk]),
+                             strict=True):
+            out[i] = result
+    return out
+
+
+def chunk_tracks(lengths: Sequence[int], chunk_frames: int) -> list[list[int]]:
+    """Indices of tracks of ``lengths`` frames grouped for batched passes: longest first, a
+    chunk takes tracks while (its tracks) x (its longest) <= ``chunk_frames`` (a track longer
+    than that alone).
+
+    >>> chunk_tracks([3, 10, 4, 9, 2], 20)
+    [[1, 3], [2, 0, 4]]
+    """
+    order = sorted(range(len(lengths)), key=lambda i: -lengths[i])
+    chunks: list[list[int]] = []
+    for i in order:
+        if chunks and (len(chunks[-1]) + 1) * lengths[chunks[-1][0]] <= chunk_frames:
+            chunks[-1].append(i)
+        else:
+            chunks.append([i])
+    return chunks
+
+
+def _run_chunk(model, passes: list[_Pass]) -> list[dict]:
+    """One pass of the network over several tracks at once (padded at the end with empty
+    frames, which hold the state and, with zero time steps, the time since the last
+    detection): per track numpy ``complete`` (T, K, 3) float32, ``pose`` (T, 4) float64,
+    and the final ``hidden`` (1, S) and ``gap`` (1,) (time since the last detection)."""
+    b, w = len(passes), max(len(p.frames) for p in passes)
+    n = max(1, max(len(f) for p in passes for f in p.frames))
+    batch = np.zeros((b, w, n, 3), np.float32)
+    lengths = np.zeros((b, w), np.int64)
+    for i, p in enumerate(passes):
+        for t, f in enumerate(p.frames):
+            lengths[i, t] = len(f)
+            if len(f):
+                batch[i, t] = np.resize(f, (n, 3))
+    kw: dict = {}
+    if passes[0].scales is not None:
+        scale = np.ones((b, w), np.float32)
+        for i, p in enumerate(passes):
+            scale[i, :len(p.frames)] = p.scales
+        kw["scale"] = torch.from_numpy(scale)
+    if passes[0].motion:
+        for key in ("counts", "dts"):
+            kw[key] = torch.cat([F.pad(p.motion[key], (0, w - len(p.frames)))
+                                 for p in passes])
+        if any(p.gap is not None for p in passes):
+            kw["gap"] = torch.cat([torch.zeros(1) if p.gap is None else p.gap
+                                   for p in passes])
+    hidden = None
+    if any(p.hidden is not None for p in passes):
+        hidden = torch.cat([torch.zeros(1, model.state_size) if p.hidden is None else p.hidden
+                            for p in passes])
     with torch.inference_mode():
-        out = model(batch, lengths, hidden=hidden, **kw)
-    return {"complete": out["complete"][0].numpy(), "pose": out["pose"][0].double().numpy(),
-            "hidden": out["hidden"].clone(), "gap": out.get("gap")}
+        out = model(torch.from_numpy(batch), torch.from_numpy(lengths), hidden=hidden, **kw)
+    results = []
+    for i, p in enumerate(passes):
+        t = len(p.frames)
+        results.append({"complete": out["complete"][i, :t].numpy(),
+                        "pose": out["pose"][i, :t].double().numpy(),
+                        "hidden": out["hidden"][i:i + 1].clone(),
+                        "gap": out["gap"][i:i + 1].clone()})
+    return results
 
 
 def _finish(estimator, track_id: str, complete: np.ndarray, poses: np.ndarray,
@@ -368,9 +513,11 @@ def _finish(estimator, track_id: str, complete: np.ndarray, poses: np.ndarray,
     filt = HeadingFilter(heading) if (egos is not None or heading.active_without_poses) \
         else None
     out = []
+    seen = np.cumsum(counts > 0) > 0  # frames before the first detection: not valid
     for t in range(len(counts)):
         est = Estimate(str(track_id), np.array(complete[t], dtype=np.float32),
                        np.array(poses[t], dtype=np.float64), int(counts[t]))
+        est.valid = est.valid and bool(seen[t])
         if scales is not None:
             est.scale = float(scales[t])
         ego = None if egos is None else egos[t]
@@ -514,3 +661,9 @@ class OfflineEstimator:
         ``"offline"``)."""
         kwargs.setdefault("config", self.config)
         return estimate_track(self.estimator, points, **kwargs)
+
+    def estimate_tracks(self, tracks: Sequence[Mapping], **kwargs) -> list[list[Estimate]]:
+        """:func:`estimate_tracks` with this estimator and configuration (``mode`` defaults
+        to ``"offline"``)."""
+        kwargs.setdefault("config", self.config)
+        return estimate_tracks(self.estimator, tracks, **kwargs)
