@@ -414,3 +414,27 @@ def test_offline_estimates_are_valid_from_the_first_detection_and_drop_nan_rows(
     with pytest.warns(UserWarning, match=r"points\[3\] \(track 'car'\): dropped 4 of 30"):
         out = estimate_track(est, nan, mode="online", track_id="car")
     assert [e.num_points for e in out] == [0, 0, 30, 26, 30]
+
+
+def test_heading_filter_gets_each_frames_points_and_class_online_and_in_online_mode(monkeypatch):
+    """The opt-in shape evidence of the heading step needs the frame's points and the class:
+    Estimator.step and estimate_track(mode="online") hand the filter the same ones."""
+    from seqshape.model import heading as heading_mod
+
+    seen = []
+    update = heading_mod.HeadingFilter.update
+
+    def spy(self, pose, ego, has_points, points=None, cls=None):
+        seen.append((None if points is None else len(points), cls))
+        return update(self, pose, ego, has_points, points, cls)
+
+    monkeypatch.setattr(heading_mod.HeadingFilter, "update", spy)
+    est = _estimator()
+    points, egos = _track()
+    for t in range(len(points)):
+        est.step(["t"], [points[t]], classes=["car"], ego_poses=[egos[t]])
+    stepped, seen[:] = list(seen), []
+    estimate_track(est, points, ego_poses=egos, mode="online", track_id="t", cls="car")
+    assert seen == stepped and len(seen) == len(points)
+    assert [n for n, _ in seen] == [min(len(p), CFG.num_points) for p in points]
+    assert {c for _, c in seen} == {"car"}

@@ -277,8 +277,7 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
     with the online heading step when not ``offline``)."""
     first = p.passes["online"]
     if not offline:
-        return _finish(estimator, p.track_id, first["complete"], first["pose"], p.counts,
-                       p.scales, p.egos, None)
+        return _finish(estimator, p, first["complete"], first["pose"], None)
     last = int(np.flatnonzero(p.counts)[-1])
     passes = {"online": first}
     if cfg.two_pass:
@@ -299,7 +298,7 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
     complete = _place(complete, own, poses)
     flips = (consistent_flips(poses, p.egos, p.counts > 0, estimator.heading, cfg.vote_decay)
              if cfg.heading else None)
-    return _finish(estimator, p.track_id, complete, poses, p.counts, p.scales, p.egos, flips)
+    return _finish(estimator, p, complete, poses, flips)
 
 
 def _bidirectional(frames: list[np.ndarray], first: dict, back: dict) -> dict:
@@ -505,26 +504,27 @@ def _run_chunk(model, passes: list[_Pass]) -> list[dict]:
     return results
 
 
-def _finish(estimator, track_id: str, complete: np.ndarray, poses: np.ndarray,
-            counts: np.ndarray, scales: np.ndarray | None, egos, flips) -> list[Estimate]:
-    """Estimates with the heading step: ``flips`` (whole track) or the estimator's online
-    causal heading filter (when ``flips`` is None)."""
-    heading = estimator.heading
+def _finish(estimator, p: _Track, complete: np.ndarray, poses: np.ndarray,
+            flips: np.ndarray | None) -> list[Estimate]:
+    """Track ``p``'s estimates with the heading step: ``flips`` (whole track) or the
+    estimator's online causal heading filter (when ``flips`` is None), which gets each
+    frame's points as :meth:`Estimator.step` gives them (the opt-in shape evidence)."""
+    heading, counts, egos = estimator.heading, p.counts, p.egos
     filt = HeadingFilter(heading) if (egos is not None or heading.active_without_poses) \
         else None
     out = []
     seen = np.cumsum(counts > 0) > 0  # frames before the first detection: not valid
     for t in range(len(counts)):
-        est = Estimate(str(track_id), np.array(complete[t], dtype=np.float32),
+        est = Estimate(str(p.track_id), np.array(complete[t], dtype=np.float32),
                        np.array(poses[t], dtype=np.float64), int(counts[t]))
         est.valid = est.valid and bool(seen[t])
-        if scales is not None:
-            est.scale = float(scales[t])
+        if p.scales is not None:
+            est.scale = float(p.scales[t])
         ego = None if egos is None else egos[t]
         if flips is not None:
             flip = bool(flips[t])
         elif filt is not None and (ego is not None or heading.active_without_poses):
-            flip = filt.update(est.pose, ego, est.num_points > 0)
+            flip = filt.update(est.pose, ego, est.num_points > 0, p.frames[t], p.cls)
         else:
             flip = False
         if flip:
