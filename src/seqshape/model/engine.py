@@ -21,7 +21,7 @@ Backends (:data:`BACKENDS`), each tested against the PyTorch reference (the mode
 * ``"torch-lean"``: :class:`StepGraph` run by PyTorch in float32 (the reference's arithmetic
   without its module and masking overhead).
 * ``"onnx-int8"``: ``"onnx"`` with the shape decoder's weights in int8 (ONNX Runtime's dynamic
-  quantisation, :func:`quantize_onnx`); the pose stays float32, shape points within 3 cm
+  quantisation, :func:`quantize_onnx`); the pose stays float32, shape points within 6 cm
   (:data:`INT8_TOLERANCE`); paper-val metrics within 0.3 % of the reference.
 
 ``"auto"`` (:func:`select_backend`) takes the first of :data:`AUTO_ORDER` whose runtime is
@@ -78,10 +78,11 @@ ONNX_OPSET = 17
 TOLERANCE = (2e-3, 2e-4, 1e-3)
 #: The same for ``"onnx-int8"``: its pose is float32 (the tolerance above), its shape points
 #: move by the int8 rounding of the shape decoder's weights and inputs: measured on the shipped
-#: weights, 100 tracks over 10 steps, up to 14 mm (median 7.5 mm; it depends on the other
-#: tracks of the pass, whose range sets the inputs' quantisation); a wrong scale or zero point
-#: of the quantisation moves them by decimetres.
-INT8_TOLERANCE = (3e-2, TOLERANCE[1], TOLERANCE[2])
+#: (round 9) weights, 40 real-looking tracks over 4 steps, the worst point of an estimate up to
+#: 32 mm (sequential) and 46 mm (baseline), median 10 and 12 mm (on the round-6 weights up to
+#: 14 mm; it depends on the other tracks of the pass, whose range sets the inputs'
+#: quantisation); a wrong scale or zero point of the quantisation moves them by decimetres.
+INT8_TOLERANCE = (6e-2, TOLERANCE[1], TOLERANCE[2])
 
 
 class StepGraph(nn.Module):

@@ -217,7 +217,7 @@ class Estimator:
             ``"torch"`` (the reference: the model's own forward pass), ``"onnx"`` (ONNX
             Runtime, ``pip install 'seqshape[fast]'``), ``"torch-lean"`` (the same step
             function in PyTorch), ``"onnx-int8"`` (opt-in: ONNX Runtime with the shape decoder
-            in int8; about 1.2x faster single-track steps, shape points within about 1.4 cm),
+            in int8; about 1.2x faster single-track steps, shape points within a few cm),
             or ``"auto"``: the first of
             :data:`~seqshape.model.engine.AUTO_ORDER` installed and passing
             :func:`check_backend` here (a warning names any passed over), else ``"torch"``.
