@@ -213,7 +213,8 @@ def test_a_full_disk_is_one_line_and_leaves_nothing_half_written(tmp_path, capsy
     out = tmp_path / "scenes"
     assert main(_scenes(out)) == 1
     line = _one_error_line(capsys, "scenes")
-    assert f"writing to {out}: {os.strerror(errno.ENOSPC)} (the disk is full" in line
+    # the atomic writer names the file it was writing (write(2)'s error names none)
+    assert f"{out / 'scene.json'}: {os.strerror(errno.ENOSPC)} (the disk is full" in line
     assert list(out.rglob("*")) == []  # the settings file's temporary copy is gone too
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from seqshape._io import atomic_open
 from seqshape.evaluation.report import LABELS, METRICS, REAL_CD_LABEL, floor_summary
 from seqshape.evaluation.runner import EvalResult
 
@@ -94,8 +95,8 @@ def _plot_against(result: EvalResult, x_col: str, edges: np.ndarray, xlabel: str
     fig.suptitle(f"{title} (line: mean, band: 25-75th percentile)", fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    with atomic_open(path) as fh:  # a full disk leaves no half-written PNG
+        fig.savefig(fh, format="png", dpi=110)
     plt.close(fig)
     return path
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from seqshape._io import atomic_open
 from seqshape.vehicles.base import FACE_LABELS, INTERIOR
 from seqshape.vehicles.fleet import fleet_vehicle
 
@@ -91,7 +92,8 @@ def contact_sheet(vehicles, path, views=("side", "top", "front", "3/4", "3/4 rea
                fontsize=7, frameon=False)
     fig.subplots_adjust(left=0.01, right=0.99, top=0.97, bottom=0.04, wspace=0.02,
                         hspace=0.05)
-    fig.savefig(path, dpi=dpi)
+    with atomic_open(path) as fh:  # a full disk leaves no half-written PNG
+        fig.savefig(fh, format="png", dpi=dpi)
     plt.close(fig)
 
 
