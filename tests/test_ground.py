@@ -7,7 +7,14 @@ The former implementation is kept below as the slow reference: the plane hypothe
 import numpy as np
 import pytest
 
-from seqshape.data.ground import _fit_plane, _ransac_plane, _triples, ground_plane
+from seqshape.data.ground import (
+    _BLOCK,
+    _fit_plane,
+    _inlier_counts,
+    _ransac_plane,
+    _triples,
+    ground_plane,
+)
 
 
 def _reference_ransac(cand, rng, iterations, threshold, max_tilt_deg):
@@ -109,3 +116,27 @@ def test_ground_plane_fallback_and_small_candidate_sets():
         got, want = ground_plane(sweep, **kw), _reference_ground_plane(sweep, **kw)
         np.testing.assert_array_equal(got[0], want[0])
         assert got[1] == want[1]
+
+
+@pytest.mark.parametrize("m", [1, 2, _BLOCK - 1, _BLOCK, _BLOCK + 1, 3 * _BLOCK + 7, 15000])
+def test_inlier_counts_by_blocks_equal_one_product(m):
+    rng = np.random.default_rng(m)
+    cand = rng.normal(size=(m, 3)) * [8, 8, 0.1]
+    n = rng.normal(size=(57, 3)) * [0.05, 0.05, 1]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    offs = rng.normal(0, 0.05, 57)
+    want = np.count_nonzero(np.abs(cand @ n.T - offs) < 0.08, axis=0)
+    for block in (1, 7, _BLOCK, 10**6):
+        np.testing.assert_array_equal(_inlier_counts(cand, n, offs, 0.08, block), want)
+    assert want.min() < want.max()  # the planes differ: a swapped column would show
+
+
+@pytest.mark.parametrize("m", [_BLOCK + 1, 4000, 15000])
+def test_ransac_equals_the_reference_on_many_candidates(m):
+    for trial in range(3):
+        cand = _sweep(m, trial, slope=0.03)[:, :3].astype(np.float64)
+        got = _ransac_plane(cand, np.random.default_rng(trial), 60, 0.08, 10.0)
+        want = _reference_ransac(cand, np.random.default_rng(trial), 60, 0.08, 10.0)
+        assert got[1] == want[1] > 0
+        np.testing.assert_array_equal(got[0][0], want[0][0])
+        assert got[0][1] == want[0][1]

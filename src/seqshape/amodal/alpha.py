@@ -16,7 +16,10 @@ at image coordinates ``(u, v)`` (the KITTI projection convention).
 Automatic alpha (``alpha=None``): radius
 ``r = max(NN_FACTOR * s_nn, TRI_FACTOR * r_med, MIN_RADIUS_PX)`` where ``s_nn`` is the 90th
 percentile of the nearest-neighbour distances of the (deduplicated) points and ``r_med`` the
-median circumradius of the Delaunay triangles. For a roughly uniform sample the circumradii of
+median circumradius of the Delaunay triangles. The nearest-neighbour distances are read off
+the triangulation (a point's nearest neighbour is a Delaunay neighbour), bit for bit what a
+KD-tree returns; a KD-tree answers when the triangles cannot be certified to tile the points'
+convex hull (:func:`_nn_from_triangles`). For a roughly uniform sample the circumradii of
 interior triangles are about the local spacing, so a few spacings keep every interior triangle
 while rejecting the long slivers that bridge concavities or gaps. The 90th percentile (rather
 than the median) tolerates the uneven density of projected surfaces (grazing surfaces project
@@ -29,12 +32,14 @@ half the ring gap).
 from __future__ import annotations
 
 import logging
+import threading
 
 import cv2
 import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 log = logging.getLogger(__name__)
+_BUFFERS = threading.local()  # per-thread scratch arrays (:func:`_lookup_buffer`)
 
 NN_FACTOR = 3.0
 TRI_FACTOR = 3.0
@@ -43,6 +48,24 @@ GRID_PX = 0.25  # projected points are snapped to this lattice (px) before trian
 _SHIFT = 4  # cv2 fixed-point bits: vertices at 1/16 px
 _FAR = 4.0  # coordinates clipped to [-_FAR * size, (1 + _FAR) * size] before rasterising
 _PAD = 10.0  # Subdiv2D rectangle: the points' box grown by this many times its extent
+_LUT_MAX = 1 << 22  # lattice cells of the vertex lookup of _nn_from_triangles (else KD-tree)
+
+
+def _subdiv_triangles(pts: np.ndarray) -> np.ndarray:
+    """The Delaunay triangles of distinct points ``pts (N, 2)`` as rows ``(T, 6)`` float32
+    ``(x0, y0, x1, y1, x2, y2)`` (module doc: Subdiv2D, virtual outer vertices dropped)."""
+    lo0, hi0 = np.floor(pts.min(0)) - 2, np.ceil(pts.max(0)) + 2
+    pad = _PAD * float(np.max(hi0 - lo0))
+    lo, hi = lo0 - pad, hi0 + pad
+    sub = cv2.Subdiv2D((int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1])))
+    sub.insert(pts.astype(np.float32))
+    tri = np.asarray(sub.getTriangleList(), dtype=np.float32).reshape(-1, 6)  # (T, 6)
+    # lo0, hi0: integers within float32's exact range (module doc), so the same comparisons;
+    # the six columns one by one (a reduction along rows of six is slow)
+    inside = (tri >= np.tile(lo0, 3).astype(np.float32)) & (tri <= np.tile(hi0, 3).astype(
+        np.float32))
+    ok = inside[:, 0] & inside[:, 1] & inside[:, 2] & inside[:, 3] & inside[:, 4] & inside[:, 5]
+    return tri[ok]
 
 
 def delaunay_triangles(pts: np.ndarray) -> np.ndarray:
@@ -52,13 +75,7 @@ def delaunay_triangles(pts: np.ndarray) -> np.ndarray:
     lattice within +-2**21 px); triangles touching its virtual outer vertices are dropped.
     Empty ``(0, 3, 2)`` for collinear points.
     """
-    lo0, hi0 = np.floor(pts.min(0)) - 2, np.ceil(pts.max(0)) + 2
-    pad = _PAD * float(np.max(hi0 - lo0))
-    lo, hi = lo0 - pad, hi0 + pad
-    sub = cv2.Subdiv2D((int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1])))
-    sub.insert(pts.astype(np.float32))
-    tri = np.asarray(sub.getTriangleList(), dtype=np.float64).reshape(-1, 3, 2)
-    return tri[np.all((tri >= lo0) & (tri <= hi0), axis=(1, 2))]
+    return _subdiv_triangles(pts).astype(np.float64).reshape(-1, 3, 2)
 
 
 def delaunay_triangles_scipy(pts: np.ndarray) -> np.ndarray:
@@ -106,22 +123,96 @@ def auto_alpha_radius(uv: np.ndarray, radii: np.ndarray | None = None,
 
 def circumradii(vertices: np.ndarray) -> np.ndarray:
     """Circumradius of each triangle, ``vertices (T, 3, 2) -> (T,)``; inf for degenerate ones."""
-    a = np.linalg.norm(vertices[:, 1] - vertices[:, 2], axis=1)
-    b = np.linalg.norm(vertices[:, 0] - vertices[:, 2], axis=1)
-    c = np.linalg.norm(vertices[:, 0] - vertices[:, 1], axis=1)
-    e1 = vertices[:, 1] - vertices[:, 0]
-    e2 = vertices[:, 2] - vertices[:, 0]
-    area2 = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])  # twice the area
+    return _radii(*_sides(vertices))
+
+
+def _radii(a, b, c, area2) -> np.ndarray:
+    """:func:`circumradii` from :func:`_sides`."""
     with np.errstate(divide="ignore", invalid="ignore"):
         r = a * b * c / (2.0 * area2)
     return np.where(area2 > 1e-12, r, np.inf)
+
+
+def _sides(vertices: np.ndarray):
+    """Side lengths ``(a, b, c)`` (opposite vertices 0, 1, 2) and twice the area of each
+    triangle ``vertices (T, 3, 2)``, as :func:`circumradii` computes them."""
+    x0, y0, x1, y1, x2, y2 = (vertices[:, i, j] for i in range(3) for j in range(2))
+    # sqrt(dx * dx + dy * dy): what np.linalg.norm(..., axis=1) computes, bit for bit
+    a = np.sqrt((x1 - x2) ** 2 + (y1 - y2) ** 2)
+    b = np.sqrt((x0 - x2) ** 2 + (y0 - y2) ** 2)
+    c = np.sqrt((x0 - x1) ** 2 + (y0 - y1) ** 2)
+    return a, b, c, np.abs((x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0))
+
+
+def _lookup_buffer(size: int) -> np.ndarray:
+    """An int32 array of at least ``size`` entries (contents undefined), kept per thread: a fresh
+    megabyte-sized array per call costs more in page faults than the lookups themselves."""
+    buf = getattr(_BUFFERS, "lut", None)
+    if buf is None or len(buf) < size:
+        buf = _BUFFERS.lut = np.empty(max(size, 1 << 16), dtype=np.int32)
+    return buf
+
+
+def _nn_from_triangles(pts: np.ndarray, vertices: np.ndarray, sides, grid: float
+                       ) -> np.ndarray | None:
+    """Nearest-neighbour distance of each point ``pts (N, 2)`` (distinct, on the ``grid``
+    lattice) from its Delaunay triangles ``vertices (T, 3, 2)`` (``sides``: :func:`_sides`),
+    or None when this cannot be certified (then the caller asks a KD-tree).
+
+    A point's nearest neighbour q is a Delaunay neighbour: the closed disk with diameter pq
+    holds no other point (one on its circle would be nearer than q), so pq is an edge of every
+    Delaunay triangulation. The triangles are certified to triangulate the points' convex hull
+    (their areas sum to the hull's, exactly: lattice coordinates); then every point's nearest
+    neighbour is the shortest side of its triangles, and the distance is computed as a KD-tree
+    computes it (the same two squares, summed, square root).
+    """
+    if grid <= 0 or len(pts) > 1 << 22:
+        return None
+    q = np.rint(pts / grid)
+    if not np.array_equal(q * grid, pts) or np.abs(q).max() > 1 << 20:
+        return None
+    q = q.astype(np.int64)
+    lo = q.min(0)
+    span = q.max(0) - lo + 1
+    if span[0] * span[1] > _LUT_MAX:
+        return None
+    a, b, c, area2 = sides
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    hull2 = abs(float(np.sum(hull[:, 0] * np.roll(hull[:, 1], -1)
+                             - hull[:, 1] * np.roll(hull[:, 0], -1))))
+    if float(area2.sum()) != hull2:
+        return None
+    lut = _lookup_buffer(int(span[0] * span[1]))
+    lut[(q[:, 0] - lo[0]) * span[1] + (q[:, 1] - lo[1])] = np.arange(len(q), dtype=np.int32)
+    qv = np.rint(vertices.reshape(-1, 2) / grid).astype(np.int64) - lo  # (3T, 2)
+    ids = lut[qv[:, 0] * span[1] + qv[:, 1]].reshape(-1, 3)
+    nn = np.full(len(pts), np.inf)
+    for side, (i, j) in ((a, (1, 2)), (b, (0, 2)), (c, (0, 1))):
+        np.minimum.at(nn, ids[:, i], side)
+        np.minimum.at(nn, ids[:, j], side)
+    return nn if np.isfinite(nn).all() else None
+
+
+def _auto_radius_fast(pts: np.ndarray, vertices: np.ndarray, sides, radii: np.ndarray,
+                      grid: float) -> float:
+    """:func:`auto_alpha_radius` of distinct lattice points with their Delaunay triangles,
+    equal to it (the nearest-neighbour distances from the triangles, :func:`_nn_from_triangles`,
+    else the KD-tree)."""
+    nn = _nn_from_triangles(pts, vertices, sides, grid)
+    if nn is None:
+        return auto_alpha_radius(pts, radii, distinct=True)
+    r = max(NN_FACTOR * np.quantile(nn, 0.9), MIN_RADIUS_PX)
+    if np.isfinite(radii).any():
+        r = max(r, TRI_FACTOR * float(np.median(radii[np.isfinite(radii)])))
+    return float(r)
 
 
 def _to_fixed(uv: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
     h, w = image_size
     lo = np.array([-_FAR * w, -_FAR * h])
     hi = np.array([(1 + _FAR) * w, (1 + _FAR) * h])
-    return np.round(np.clip(uv, lo, hi) * (1 << _SHIFT)).astype(np.int32)
+    # np.clip's value for finite input, without its wrapper's overhead
+    return np.round(np.minimum(np.maximum(uv, lo), hi) * (1 << _SHIFT)).astype(np.int32)
 
 
 def _draw_degenerate(mask: np.ndarray, uv: np.ndarray, image_size) -> None:
@@ -156,21 +247,22 @@ def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None
     """
     h, w = int(image_size[0]), int(image_size[1])
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    uv = uv[np.isfinite(uv[:, 0]) & np.isfinite(uv[:, 1])]
     mask = np.zeros((h, w), dtype=np.uint8)
     if alpha is not None and alpha < 0:
         raise ValueError(f"alpha must be >= 0, got {alpha}")
     pts = _dedup(uv, grid)
     if len(pts) < 3:
         _draw_degenerate(mask, pts, (h, w))
-        return mask.astype(bool)
+        return mask.view(bool)  # 0 / 1 only: a view, not a copy
     verts = delaunay_triangles(pts)  # (T, 3, 2)
     if len(verts) == 0:  # collinear
         _draw_degenerate(mask, pts, (h, w))
-        return mask.astype(bool)
-    radii = circumradii(verts)  # (T,)
+        return mask.view(bool)  # 0 / 1 only: a view, not a copy
+    sides = _sides(verts)
+    radii = _radii(*sides)  # (T,)
     if alpha is None:
-        radius = auto_alpha_radius(pts, radii, distinct=True)
+        radius = _auto_radius_fast(pts, verts, sides, radii, grid)
     else:
         radius = np.inf if alpha == 0 else 1.0 / alpha
     keep = radii < radius
@@ -179,13 +271,14 @@ def alpha_shape_mask(uv, image_size: tuple[int, int], alpha: float | None = None
         fixed = _to_fixed(pts, (h, w)) >> _SHIFT
         inside = (fixed[:, 0] >= 0) & (fixed[:, 0] < w) & (fixed[:, 1] >= 0) & (fixed[:, 1] < h)
         mask[fixed[inside, 1], fixed[inside, 0]] = 1
-        return mask.astype(bool)
-    polys = list(_to_fixed(verts[keep].reshape(-1, 2), (h, w)).reshape(-1, 3, 2))
+        return mask.view(bool)  # 0 / 1 only: a view, not a copy
+    polys = _to_fixed(verts[keep].reshape(-1, 2), (h, w)).reshape(-1, 3, 2)
     # One triangle at a time would be exact but slow; fillPoly over all the (non-overlapping)
-    # Delaunay triangles fills their union in one scanline pass.
+    # Delaunay triangles fills their union in one scanline pass (an (T, 3, 2) array is taken
+    # as T polygons, as a list of them would be).
     cv2.fillPoly(mask, polys, 1, lineType=cv2.LINE_8, shift=_SHIFT)
     # Vertices themselves belong to the shape (thin sliver triangles may rasterise to nothing).
     fixed = (_to_fixed(pts, (h, w)) + (1 << (_SHIFT - 1))) >> _SHIFT
     inside = (fixed[:, 0] >= 0) & (fixed[:, 0] < w) & (fixed[:, 1] >= 0) & (fixed[:, 1] < h)
     mask[fixed[inside, 1], fixed[inside, 0]] = 1
-    return mask.astype(bool)
+    return mask.view(bool)  # 0 / 1 only: a view, not a copy

@@ -119,9 +119,10 @@ class SweepIndex:
         return np.floor((xy.astype(self.dtype, copy=False) - self.lo) / self.cell).astype(
             np.int64)
 
-    def rows(self, centres, reaches) -> np.ndarray:
-        """Sorted indices of the points in the cells touched by the squares
-        ``|x - cx| <= reach, |y - cy| <= reach`` (``centres (B, 2)``, ``reaches (B,)``)."""
+    def cells(self, centres, reaches) -> np.ndarray:
+        """``(cells + 1,)`` bool: the grid cells touched by the squares
+        ``|x - cx| <= reach, |y - cy| <= reach`` (``centres (B, 2)``, ``reaches (B,)``), indexed
+        by :attr:`keys` (the last entry, the points in no cell, is False)."""
         n0, n1 = int(self.shape[0]), int(self.shape[1])
         wanted = np.zeros(n0 * n1 + 1, dtype=bool)  # the last entry: points in no cell
         c = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
@@ -132,7 +133,12 @@ class SweepIndex:
         for (i0, j0), (i1, j1) in zip(lo, hi, strict=True):
             if i0 <= i1 and j0 <= j1:
                 grid[i0:i1 + 1, j0:j1 + 1] = True
-        return np.flatnonzero(wanted[self.keys])
+        return wanted
+
+    def rows(self, centres, reaches) -> np.ndarray:
+        """Sorted indices of the points in the cells touched by the squares
+        ``|x - cx| <= reach, |y - cy| <= reach`` (``centres (B, 2)``, ``reaches (B,)``)."""
+        return np.flatnonzero(self.cells(centres, reaches)[self.keys])
 
 
 def _ground_from(near: np.ndarray, local: np.ndarray, size: np.ndarray, cfg: CropConfig):
@@ -193,10 +199,16 @@ def crop_vehicles(points, poses, sizes, cfg: CropConfig = CropConfig(),
         return []
     extra = _reach_extra(cfg)
     reaches = np.array([_reach(s, extra) for s in sizes])
-    # the points that can be near any box, in sweep order: each box finds the same points in
-    # the same order among them as in the whole sweep
-    near = pts[SweepIndex(pts).rows(poses[:, :2], reaches)]
-    return [_crop_one(near, p, s, cfg, sweep_plane) for p, s in zip(poses, sizes, strict=True)]
+    # the points that can be near any box, in sweep order, then those of each box's own cells:
+    # each box finds the same points in the same order among them as in the whole sweep
+    index = SweepIndex(pts)
+    rows = index.rows(poses[:, :2], reaches)
+    near, keys = pts[rows], index.keys[rows]
+    out = []
+    for p, s, r in zip(poses, sizes, reaches, strict=True):
+        own = near[np.flatnonzero(index.cells(p[None, :2], [r])[keys])] if len(poses) > 1 else near
+        out.append(_crop_one(own, p, s, cfg, sweep_plane))
+    return out
 
 
 def _reach_extra(cfg: CropConfig) -> float:
