@@ -97,8 +97,13 @@ def _run(estimator, tracks: Sequence[TrackInput], reverse: bool, tag: str) -> li
             fused[k] += len(p)
             cloud, pose = est.complete, est.pose
             gt = tracks[k].poses
-            if len(p) == 0 and gt is not None and last_seen[k] is not None:
-                cloud, pose = canonical_to_sensor(last_seen[k], gt[i]), gt[i]
+            if len(p) == 0 and gt is not None and (last_seen[k] is not None or not est.valid):
+                # an empty frame of a known box: the last shape seen, or before the track's
+                # first points (an estimate from nothing, placed around the sensor origin) the
+                # network's prior shape, at the true pose
+                shape = last_seen[k] if last_seen[k] is not None else \
+                    sensor_to_canonical(est.complete, est.pose)
+                cloud, pose = canonical_to_sensor(shape, gt[i]), gt[i]
             elif len(p):
                 last_seen[k] = sensor_to_canonical(est.complete, est.pose)
             out[k].clouds[i], out[k].poses[i], out[k].fused[i] = cloud, pose, fused[k]
