@@ -704,11 +704,7 @@ def _validate(doc: dict, ann_keys: Sequence[str], segm_keys: Sequence[str]) -> N
     ids = set()
     for i, ann in enumerate(doc["annotations"]):
         where = f"annotations[{i}]"
-        if not isinstance(ann, dict):
-            raise _Invalid(f"{where}: expected an object, got a JSON {_json_type(ann)}")
-        missing = [k for k in ann_keys if k not in ann]
-        if missing:
-            raise _Invalid(f"{where}: missing key(s) {missing}")
+        _check_object(ann, ann_keys, where)
         ann_id = _id(ann["id"], f"{where}.id")
         if ann_id in ids:
             raise _Invalid(f"{where}: duplicate annotation id {ann_id}")
@@ -722,15 +718,20 @@ def _validate(doc: dict, ann_keys: Sequence[str], segm_keys: Sequence[str]) -> N
             _check_segm(ann[key], sizes[ann["image_id"]], f"{where}.{key}")
 
 
+def _check_object(obj, keys, where: str) -> None:
+    """``obj`` must be a JSON object holding every one of ``keys``."""
+    if not isinstance(obj, dict):
+        raise _Invalid(f"{where}: expected an object, got a JSON {_json_type(obj)}")
+    missing = [k for k in keys if k not in obj]
+    if missing:
+        raise _Invalid(f"{where}: missing key(s) {missing}")
+
+
 def _check_images(images: list) -> dict[int, tuple[int, int]]:
     """``{image id: (height, width)}`` of checked ``images`` entries."""
     sizes = {}
     for i, img in enumerate(images):
-        if not isinstance(img, dict):
-            raise _Invalid(f"images[{i}]: expected an object, got a JSON {_json_type(img)}")
-        missing = [k for k in IMAGE_KEYS if k not in img]
-        if missing:
-            raise _Invalid(f"images[{i}]: missing key(s) {missing}")
+        _check_object(img, IMAGE_KEYS, f"images[{i}]")
         image_id = _id(img["id"], f"images[{i}].id")
         if image_id in sizes:
             raise _Invalid(f"images[{i}]: duplicate image id {image_id}")
