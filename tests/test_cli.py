@@ -12,16 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _kitti_fixture import write_box_kitti
 
-from seqshape.camera import kitti_default_calib, write_calib
 from seqshape.cli import COMMANDS, build_parser, command_parser, main
 from seqshape.data import TrackDataset
-from seqshape.data.kitti import KittiLabel, pose_to_label_fields, write_velodyne
-from seqshape.data.kitti import write_labels as write_kitti
-from seqshape.geometry import canonical_to_sensor
 from seqshape.scripts.scenes import degrade_config
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
-from seqshape.testing import box_shell
 
 # options added since that release (issue 17: inference backends, labelling workers)
 ADDED = {"label": {"backend": "auto", "workers": 1}, "evaluate": {"backend": "auto"}}
@@ -224,26 +220,9 @@ def test_top_level_help_lists_every_command(capsys):
     assert all(name in text for name in COMMANDS)
 
 
-def _tiny_kitti(root: Path, frames: int = 4) -> Path:
+def _tiny_kitti(root: Path) -> Path:
     """A hand-built KITTI tracking sequence 0000: two box cars seen from the sensor side."""
-    size = (4.0, 1.8, 1.5)
-    calib = kitti_default_calib()
-    write_calib(root / "calib" / "0000.txt", calib)
-    labels = []
-    for t in range(frames):
-        rng = np.random.default_rng(t)
-        scan = [np.c_[rng.uniform([3, -10], [40, 10], (1000, 2)), np.full(1000, -1.73)]]
-        for k, (x, y, v, yaw) in enumerate([(8, 2.5, 0.5, 0.2), (14, -3.0, 0.7, -0.1)]):
-            pose = np.array([x + v * t, y, -1.73 + size[2] / 2, yaw])
-            s = canonical_to_sensor(box_shell(3000, rng, size, dtype=np.float32), pose)
-            scan.append(s[np.linalg.norm(s[:, :2], axis=1) < np.linalg.norm(pose[:2])])
-            labels.append(KittiLabel(frame=t, track_id=k, type="Car", truncated=0, occluded=0,
-                                     bbox=[0, 0, 1, 1], **pose_to_label_fields(pose, size, calib)))
-        scan = np.vstack(scan).astype(np.float32)
-        write_velodyne(root / "velodyne" / "0000" / f"{t:06d}.bin",
-                       np.c_[scan, np.zeros(len(scan))])
-    write_kitti(root / "label_02" / "0000.txt", labels)
-    return root
+    return write_box_kitti(root)
 
 
 def test_export_tracks_and_the_deprecated_label_flag_write_the_same(tmp_path, capsys):

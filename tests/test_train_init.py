@@ -13,6 +13,7 @@ import zlib
 import numpy as np
 import pytest
 import torch
+from _kitti_fixture import TWO_CARS, write_box_kitti
 from _model_data import make_dataset
 
 from seqshape.amodal.accumulate import export_tracks
@@ -181,29 +182,8 @@ def test_export_tracks_then_cli_fine_tune(source, tmp_path, n_tracks, capsys):
 def _tiny_kitti(root, frames: int = 6):
     """A hand-built KITTI tracking sequence 0000: three box cars, the sensor-facing surface of
     each in the scan (plus ground), boxes in label_02."""
-    from seqshape.camera import kitti_default_calib, write_calib
-    from seqshape.data.kitti import KittiLabel, pose_to_label_fields, write_velodyne
-    from seqshape.data.kitti import write_labels as write_kitti
-
-    calib = kitti_default_calib()
-    write_calib(root / "calib" / "0000.txt", calib)
-    z = -1.73 + SIZE[2] / 2
-    labels = []
-    for t in range(frames):
-        rng = np.random.default_rng(t)
-        scan = [np.c_[rng.uniform([3, -10], [40, 10], (2000, 2)), np.full(2000, -1.73)]]
-        for k, (x, y, v, yaw) in enumerate([(8, 2.5, 0.5, 0.2), (14, -3.0, 0.7, -0.1),
-                                            (22, 3.5, 0.4, 0.05)]):
-            pose = np.array([x + v * t, y, z, yaw])
-            s = canonical_to_sensor(box_shell(3000, rng, SIZE, dtype=np.float32), pose)
-            scan.append(s[np.linalg.norm(s[:, :2], axis=1) < np.linalg.norm(pose[:2])])
-            labels.append(KittiLabel(frame=t, track_id=k, type="Car", truncated=0, occluded=0,
-                                     bbox=[0, 0, 1, 1], **pose_to_label_fields(pose, SIZE, calib)))
-        scan = np.vstack(scan).astype(np.float32)
-        write_velodyne(root / "velodyne" / "0000" / f"{t:06d}.bin",
-                       np.c_[scan, np.zeros(len(scan))])
-    write_kitti(root / "label_02" / "0000.txt", labels)
-    return root
+    return write_box_kitti(root, frames, cars=TWO_CARS + ((22, 3.5, 0.4, 0.05),), size=SIZE,
+                           ground_points=2000)
 
 
 def test_sc_gt_fine_tune_command_sequence(source, tmp_path):
