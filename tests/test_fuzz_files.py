@@ -151,6 +151,21 @@ def write_json(path, doc) -> None:
     path.write_text(json.dumps(doc, allow_nan=True))
 
 
+def mutated_json(path, n: int, rng: np.random.Generator):
+    """Overwrite the JSON file ``path`` ``n`` times, alternately with a structural mutation of
+    its document and a byte mutation of its text, yielding after each write (the original is
+    restored at the end)."""
+    good = path.read_bytes()
+    doc = json.loads(good)
+    for k in range(n):
+        if k % 2:
+            path.write_bytes(mutate_bytes(good, rng))
+        else:
+            write_json(path, mutate_json(doc, rng))
+        yield k
+    path.write_bytes(good)
+
+
 def expect_data_error_or(path, read, check):
     """``read(path)``: a DataError naming ``path``, or a result that passes ``check``."""
     try:
@@ -271,14 +286,8 @@ def test_fuzz_kins_and_coco_json(tmp_path, reader):
             a, "a_segm", images[a["image_id"]]), score=0.5) for a in anns]
         write_coco_instances(path, images, coco)
         read = read_coco_instances
-    good = path.read_bytes()
-    doc = json.loads(good)
     accepted = 0
-    for k in range(300):
-        if k % 2:
-            path.write_bytes(mutate_bytes(good, rng))
-        else:
-            write_json(path, mutate_json(doc, rng))
+    for _ in mutated_json(path, 300, rng):
         accepted += expect_data_error_or(path, read, _check_kins) is not None
     assert 0 < accepted < 200
 
@@ -313,14 +322,8 @@ def test_fuzz_manifests(tmp_path):
     rng = np.random.default_rng(9)
     ds = write_dataset(tmp_path / "ds", [_track("a"), _track("b")])
     mpath = ds.path / "manifest.json"
-    good = mpath.read_bytes()
-    doc = json.loads(good)
     accepted = 0
-    for k in range(300):
-        if k % 2:
-            mpath.write_bytes(mutate_bytes(good, rng))
-        else:
-            write_json(mpath, mutate_json(doc, rng))
+    for _ in mutated_json(mpath, 300, rng):
         out = expect_data_error_or(mpath, lambda p: TrackDataset(p.parent), _check_dataset)
         if out is not None:
             accepted += 1
