@@ -16,14 +16,25 @@ Warm-up (one step per track and five single-track steps per backend, plus the ba
 set-up), then the median and spread (min-max) of ``--repeats`` passes; fixed seeds
 (``--seed``: the clouds and an untrained network's weights).
 
+``--compare-with OLD_SRC`` (the ``src`` folder of a frozen copy of the tree, e.g. ``git archive
+HEAD | tar -x -C /tmp/old``, then ``/tmp/old/src``) measures that copy's seqshape against this
+tree's side by side: two worker processes (this script with ``--worker``, one importing each
+tree), the repeats alternating between them, one process timing at a time; the table gains a
+``tree`` column (``old`` / ``new``) and the ratios are to the old copy's first backend.
+
 Run: ``python benchmarks/bm_streaming.py [--backends torch onnx onnx-int8] [--threads 1] [--busy 0]
-[--weights sequential baseline] [--repeats 5] [--seed 0]``
+[--weights sequential baseline] [--repeats 5] [--seed 0] [--compare-with OLD_SRC]``
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import multiprocessing
+import os
 import statistics
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -95,31 +106,115 @@ def latency_run(est: Estimator, single: list[np.ndarray]) -> float:
                          warmup=0).median
 
 
+class Runner:
+    """The estimators of one set of weights, one per backend, warmed up on the inputs."""
+
+    def __init__(self, spec: str, backends: list[str], args):
+        self.ests = {b: load(spec, b, args.threads, args.seed) for b in backends}
+        self.frames = make_frames(args.tracks, args.frames, seed=args.seed)
+        self.single = [f[0] for f in make_frames(1, 100, seed=args.seed + 1)]
+        ids = [f"track{i}" for i in range(args.tracks)]
+        for est in self.ests.values():  # warm-up
+            est.step(ids, self.frames[0])
+            for p in self.single[:5]:
+                est.step(["solo"], [p])
+
+    def repeat(self) -> dict[str, tuple[float, float]]:
+        """One timed pass of every backend in turn: (updates/s, single-track median ms)."""
+        work = len(self.frames[0]) * len(self.frames)
+        return {b: (work / throughput_run(est, self.frames), latency_run(est, self.single))
+                for b, est in self.ests.items()}
+
+    def names(self) -> dict[str, str]:
+        return {b: est.backend for b, est in self.ests.items()}
+
+
+def table_rows(spec: str, results: dict[str, list[tuple[float, float]]], ref: str,
+               names: dict[str, str], tree: dict[str, str] | None = None) -> list[tuple]:
+    """Rows of the table for one set of weights; ``results[key]`` the repeats of one row,
+    ``ref`` the key of the ratio columns' reference."""
+    ref_rate = statistics.median(r for r, _ in results[ref])
+    ref_lat = statistics.median(m for _, m in results[ref])
+    rows = []
+    for key, runs in results.items():
+        rates, lat = [r for r, _ in runs], [m for _, m in runs]
+        r, m = statistics.median(rates), statistics.median(lat)
+        rows.append((spec, *([] if tree is None else [tree[key]]), names[key],
+                     f"{r:.0f}", f"{min(rates):.0f}", f"{max(rates):.0f}", f"{r / ref_rate:.2f}",
+                     f"{m:.2f}", f"{min(lat):.2f}", f"{max(lat):.2f}", f"{ref_lat / m:.2f}"))
+    return rows
+
+
 def bench_weights(spec: str, backends: list[str], args) -> list[tuple]:
     """Rows of the table for one set of weights: every backend, repeats interleaved."""
-    ests = {b: load(spec, b, args.threads, args.seed) for b in backends}
-    frames = make_frames(args.tracks, args.frames, seed=args.seed)
-    single = [f[0] for f in make_frames(1, 100, seed=args.seed + 1)]
-    ids = [f"track{i}" for i in range(args.tracks)]
-    for est in ests.values():  # warm-up
-        est.step(ids, frames[0])
-        for p in single[:5]:
-            est.step(["solo"], [p])
-    rates = {b: [] for b in backends}
-    lat = {b: [] for b in backends}
+    runner = Runner(spec, backends, args)
+    results = {b: [] for b in backends}
     for _ in range(args.repeats):
-        for b, est in ests.items():
-            rates[b].append(args.tracks * args.frames / throughput_run(est, frames))
-            lat[b].append(latency_run(est, single))
-    ref_rate = statistics.median(rates[backends[0]])
-    ref_lat = statistics.median(lat[backends[0]])
-    rows = []
-    for b, est in ests.items():
-        r, m = statistics.median(rates[b]), statistics.median(lat[b])
-        rows.append((spec, f"{b} ({est.backend})", f"{r:.0f}", f"{min(rates[b]):.0f}",
-                     f"{max(rates[b]):.0f}", f"{r / ref_rate:.2f}", f"{m:.2f}",
-                     f"{min(lat[b]):.2f}", f"{max(lat[b]):.2f}", f"{ref_lat / m:.2f}"))
-    return rows
+        for b, value in runner.repeat().items():
+            results[b].append(value)
+    names = {b: f"{b} ({n})" for b, n in runner.names().items()}
+    return table_rows(spec, results, backends[0], names)
+
+
+def worker_args(args, spec: str) -> list[str]:
+    """The command line of a ``--worker`` process for ``spec`` (this run's settings)."""
+    cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--weights", spec,
+           "--backends", *args.backends, "--tracks", str(args.tracks), "--frames",
+           str(args.frames), "--seed", str(args.seed)]
+    return cmd + ([] if args.threads is None else ["--threads", str(args.threads)])
+
+
+class Worker:
+    """A ``--worker`` process importing seqshape from ``src`` (None: this tree's)."""
+
+    def __init__(self, args, spec: str, src: str | None):
+        env = dict(os.environ)
+        if src is not None:
+            env["PYTHONPATH"] = os.pathsep.join([src, *filter(None, [env.get("PYTHONPATH")])])
+        self.proc = subprocess.Popen(worker_args(args, spec), env=env, text=True,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        self.names = self._reply()  # after the warm-up
+
+    def _reply(self):
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"benchmark worker {self.proc.args} stopped (see its stderr)")
+        return json.loads(line)
+
+    def repeat(self) -> dict[str, tuple[float, float]]:
+        self.proc.stdin.write("go\n")
+        self.proc.stdin.flush()
+        return {b: tuple(v) for b, v in self._reply().items()}
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait()
+
+
+def compare_weights(spec: str, backends: list[str], args) -> list[tuple]:
+    """Rows for one set of weights, the old copy's backends and this tree's, the repeats
+    alternating between the two worker processes (one timing at a time)."""
+    workers = {"old": Worker(args, spec, args.compare_with), "new": Worker(args, spec, None)}
+    try:
+        results = {(t, b): [] for t in workers for b in backends}
+        for _ in range(args.repeats):
+            for t, w in workers.items():
+                for b, value in w.repeat().items():
+                    results[t, b].append(value)
+    finally:
+        for w in workers.values():
+            w.close()
+    names = {(t, b): f"{b} ({workers[t].names[b]})" for t, b in results}
+    return table_rows(spec, results, ("old", backends[0]), names, {k: k[0] for k in results})
+
+
+def run_worker(args) -> None:
+    """``--worker``: warm up, print the backends' names, then one repeat per line "go"."""
+    runner = Runner(args.weights[0], args.backends, args)
+    print(json.dumps(runner.names()), flush=True)
+    for line in sys.stdin:
+        if line.strip() == "go":
+            print(json.dumps(runner.repeat()), flush=True)
 
 
 def main() -> None:
@@ -133,20 +228,29 @@ def main() -> None:
                     help="shipped names, weights files, or 'untrained' (random small model)")
     ap.add_argument("--backends", nargs="+", default=["torch", "onnx", "torch-lean", "onnx-int8"],
                     choices=BACKENDS, help="the first is the reference of the ratio columns")
+    ap.add_argument("--compare-with", metavar="OLD_SRC", default=None,
+                    help="the src folder of a frozen copy of the tree to measure side by side")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.worker:
+        run_worker(args)
+        return
     print(f"torch {torch.__version__}, threads {args.threads}, busy processes {args.busy}, "
-          f"{time.strftime('%Y-%m-%d %H:%M %Z')}")
+          f"{time.strftime('%Y-%m-%d %H:%M %Z')}"
+          + ("" if args.compare_with is None else f", old tree {args.compare_with}"))
+    bench = bench_weights if args.compare_with is None else compare_weights
     busy = start_busy(args.busy)
     try:
-        rows = [row for spec in args.weights for row in bench_weights(spec, args.backends, args)]
+        rows = [row for spec in args.weights for row in bench(spec, args.backends, args)]
     finally:
         stop_busy(busy)
     print()
-    print_table(("weights", "backend", f"updates/s ({args.tracks} tracks), median", "min",
+    tree = [] if args.compare_with is None else ["tree"]
+    print_table(("weights", *tree, "backend", f"updates/s ({args.tracks} tracks), median", "min",
                  "max", "x ref", "1-track ms, median", "min", "max", "x ref"), rows,
-                align="llrrrrrrrr")
+                align="l" * (2 + len(tree)) + "rrrrrrrr")
     print("\ntargets (issue 17): >= 3000 updates/s, <= 1 ms; 'x ref': speed-up over the first "
-          "backend")
+          "backend" + ("" if args.compare_with is None else " of the old tree"))
 
 
 if __name__ == "__main__":

@@ -125,10 +125,12 @@ def test_fast_backends_match_the_reference(backend, options, recurrent):
 @pytest.mark.parametrize("kind", ["sequential", "baseline"])
 def test_shipped_weights_on_real_looking_tracks(kind):
     """The shipped network, 40 tracks of partial car views (so the batch splits into
-    point-count groups), a reset, an empty frame for every track."""
+    point-count groups), a reset, an empty frame for every track, then one track alone (the
+    one-track graph)."""
     net = Estimator.load(kind, backend="torch").model
     steps = _stream(7, n_tracks=40, n_steps=4, num_points=net.cfg.num_points)
     steps.append({**steps[-1], "point_lists": [np.zeros((0, 3), np.float32)] * 40})
+    steps += _single_track_steps(np.random.default_rng(7), net.cfg.num_points, track="t5")
     _compare(net, "onnx", steps, resets=(2,))
 
 
@@ -220,6 +222,25 @@ def test_torch_lean_threads_apply_to_its_steps_only():
     assert seen == [1] and torch.get_num_threads() == before
 
 
+def test_spare_cores_counts_the_runnable_tasks(monkeypatch, tmp_path):
+    import builtins
+
+    real_open = builtins.open
+
+    def fake(text):
+        def opener(path, *args, **kwargs):
+            return real_open(tmp_path / "loadavg", *args, **kwargs) \
+                if path == "/proc/loadavg" else real_open(path, *args, **kwargs)
+        (tmp_path / "loadavg").write_text(text)
+        return opener
+
+    for text, cores, spare in (("0.50 0.40 0.30 1/97 123\n", 2, 1),
+                               ("3.44 3.66 2.92 3/99 13083\n", 2, 0),
+                               ("1.00 1.00 1.00 2/99 13083\n", 8, 6), ("garbage", 2, 0)):
+        monkeypatch.setattr(builtins, "open", fake(text))
+        assert engine_module.spare_cores(cores) == spare, text
+
+
 def test_length_buckets_cover_every_row_once_with_little_padding():
     rng = np.random.default_rng(0)
     for n, fill, min_rows in itertools.product((1, 7, 100), (0.5, 0.75), (1, 16)):
@@ -252,6 +273,7 @@ def test_int8_backend_on_real_looking_tracks(kind):
     net = Estimator.load(kind, backend="torch").model
     steps = _stream(11, n_tracks=40, n_steps=4, num_points=net.cfg.num_points)
     steps.append({**steps[-1], "point_lists": [np.zeros((0, 3), np.float32)] * 40})
+    steps += _single_track_steps(np.random.default_rng(11), net.cfg.num_points, track="t3")
     _compare(net, "onnx-int8", steps, resets=(2,), tolerance=INT8_TOLERANCE)
     est = Estimator(net, backend="onnx-int8")
     assert est.backend == "onnx-int8" and est._engine.tolerance == INT8_TOLERANCE
@@ -279,3 +301,78 @@ def test_int8_quantises_exactly_the_shape_decoder():
             assert np.abs(a.complete - b.complete).max() <= 0.02 * extent, f"step {t}"
             assert np.abs(a.pose[:3] - b.pose[:3]).max() <= TOL_CENTRE
             assert abs(wrap_angle(a.pose[3] - b.pose[3])) <= TOL_YAW
+
+
+def _single_track_steps(rng, num_points: int, track: str = "solo") -> list[dict]:
+    """One track alone: 1, 2, N/2, N and 5N points, an empty frame, timestamps and hints."""
+    steps = []
+    for t, n in enumerate([1, 2, num_points // 2, 0, num_points, 5 * num_points, 3]):
+        pose = (12.0 + 0.5 * t, -4.0, -0.9, 0.4)
+        steps.append({"track_ids": [track], "point_lists": [_cloud(rng, n, pose)],
+                      "timestamps": [0.1 * t if t != 2 else None], "sizes": [None],
+                      "classes": ["car" if t % 2 else None]})
+    return steps
+
+
+@pytest.mark.parametrize(("options", "recurrent"),
+                         [(o, True) for o in OPTIONS] + [(OPTIONS[-1], False)])
+def test_one_track_passes_run_their_own_graph_and_match_the_reference(options, recurrent):
+    """A pass of one track with points runs :class:`OneTrackGraph` (no padding); the others
+    (an empty frame of a new track, several tracks) the batch graph; both match the
+    reference through a reset."""
+    net = _net(options, recurrent)
+    est = Estimator(net, backend="onnx", threads=1)  # (no second sessions for spare cores)
+    calls = {"one": 0, "batch": 0}
+    for name, session in (("one", est._engine.one), ("batch", est._engine.session)):
+        run = session.run
+        session.run = lambda inputs, run=run, name=name: calls.__setitem__(name, calls[name] + 1) \
+            or run(inputs)
+    ref = Estimator(net, backend="torch")
+    rng = np.random.default_rng(5)
+    steps = [{"track_ids": ["new"], "point_lists": [np.zeros((0, 3), np.float32)]},
+             *_single_track_steps(rng, net.cfg.num_points)]
+    for t, step in enumerate(steps):
+        if t == 5:  # after the empty frame (carried: not computed)
+            est.reset("solo")
+            ref.reset("solo")
+        _assert_close(est.step(**step), ref.step(**step), f"step {t}")
+    assert calls == {"one": 6, "batch": 1}  # the empty frames: one new track, one carried
+
+
+def test_spare_cores_bring_a_second_thread_to_the_same_outputs(monkeypatch):
+    """With ``threads=None``, passes of many encoder rows and one-track passes run on two
+    threads while a core is free (the one-track pass's workers spinning during it), to the
+    same outputs (float rounding) as on one; on one thread when no core is free."""
+    monkeypatch.setattr(engine_module, "LARGE_PASS_ROWS", 100)
+    monkeypatch.setattr(engine_module, "SPARE_CHECK_PERIOD", -1.0)  # read at every pass
+    monkeypatch.setattr(engine_module, "_usable_cores", lambda: 8)
+    spare = [1]
+    monkeypatch.setattr(engine_module, "spare_cores", lambda cores: spare[0])
+    net = _net(OPTIONS[-1])
+    default, one = Estimator(net, backend="onnx"), Estimator(net, backend="onnx", threads=1)
+    assert one._engine.wide(False) is None and one._engine.wide(True) is None
+    used = []
+    for name, one_track in (("large", False), ("one_spare", True)):
+        session = default._engine.wide(one_track)
+        options = session.session.get_session_options()
+        assert options.intra_op_num_threads == engine_module.LARGE_PASS_THREADS == 2
+        spins = options.get_session_config_entry("session.intra_op.allow_spinning")
+        assert spins == ("1" if name == "one_spare" else "0")
+        run = session.run
+        session.run = lambda inputs, run=run, name=name: used.append(
+            (name, inputs.points.shape[:2])) or run(inputs)
+    steps = _stream(9, n_tracks=12) + _single_track_steps(np.random.default_rng(9), 32, "t0")
+    for t, step in enumerate(steps):
+        for a, b in zip(default.step(**step), one.step(**step), strict=True):
+            np.testing.assert_allclose(a.complete, b.complete, rtol=0, atol=1e-6,
+                                       err_msg=f"step {t}")
+            np.testing.assert_allclose(a.pose, b.pose, rtol=0, atol=1e-6, err_msg=f"step {t}")
+    assert {name for name, _ in used} == {"large", "one_spare"}
+    assert all(b * n >= 100 for name, (b, n) in used if name == "large")
+    count, spare[0] = len(used), 0  # every core busy: one thread
+    for step in (_stream(9, n_tracks=12)[0], _single_track_steps(np.random.default_rng(1), 32)[0]):
+        default.step(**step)
+    assert len(used) == count
+    monkeypatch.setattr(engine_module, "_usable_cores", lambda: 1)
+    one_core = Estimator(net, backend="onnx")._engine  # one core: nothing to gain
+    assert one_core.wide(False) is None and one_core.wide(True) is None

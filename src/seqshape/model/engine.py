@@ -12,6 +12,8 @@ a frame beyond its ``lengths`` must be cyclic copies of its real rows (what
 :meth:`Estimator.step` builds), so both max-pools are plain maxima (no gather), the weights are
 split and made contiguous once, and the GRU cell is spelled out (exportable). The recurrent
 state stays outside, so streaming, resets and many tracks work the same on every backend.
+:class:`OneTrackGraph` is the same step for a pass of one track whose frame has points (no
+padding, no masks, both max-pools over a contiguous axis), the ONNX engines' graph for it.
 
 Backends (:data:`BACKENDS`), each tested against the PyTorch reference (the model's own
 ``forward``, backend ``"torch"``):
@@ -35,7 +37,9 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import tempfile
+import time
 import warnings
 import zlib
 from collections.abc import Callable
@@ -60,8 +64,20 @@ AUTO_ORDER = ("onnx", "torch-lean")
 #: Inputs and outputs of :class:`StepGraph` (and of the exported ONNX graph), in order.
 GRAPH_INPUTS = ("points", "lengths", "hidden", "mean", "seen", "scale", "dts", "counts", "gap")
 GRAPH_OUTPUTS = ("complete", "pose", "hidden_out", "mean_out", "seen_out", "gap_out")
+#: Inputs and outputs of :class:`OneTrackGraph` (one track with points, no padding).
+ONE_INPUTS = tuple(name for name in GRAPH_INPUTS if name != "lengths")
+ONE_OUTPUTS = GRAPH_OUTPUTS[:4]
 #: Grouping of the tracks of one step by point count (:func:`length_buckets`).
 BUCKET_FILL, BUCKET_MIN_ROWS = 0.75, 16
+#: Encoder rows (tracks x padded points) from which a pass of the ONNX engines runs on
+#: :data:`LARGE_PASS_THREADS` threads when ``threads`` is left at None and a core is free
+#: (:func:`spare_cores`; one-track passes too, see :class:`OnnxEngine`); the other passes of
+#: a few tracks run on one thread, the fastest for them. Two threads on cores that other
+#: processes keep busy lose throughput (docs/model.md, "Threads").
+LARGE_PASS_ROWS = 4096
+LARGE_PASS_THREADS = 2
+#: Seconds for which :meth:`OnnxEngine.spare` trusts its last count of free cores.
+SPARE_CHECK_PERIOD = 0.1
 #: The layers whose weights ``"onnx-int8"`` quantises (:func:`quantize_onnx`): the shape
 #: decoder, 70 % of the weights and of the bytes a single-track step reads. Quantising the
 #: encoder, the GRU or the pose decoder as well turns some tracks' yaws by tens of degrees
@@ -142,11 +158,7 @@ class StepGraph(nn.Module):
         mask = (torch.arange(n) < lengths.unsqueeze(1)).unsqueeze(-1)  # (B, N, 1)
         count = lengths.clamp(min=1).unsqueeze(-1).to(points.dtype)
         frame_mean = (points * mask.to(points.dtype)).sum(1) / count  # (B, 3)
-        x = (points - frame_mean.unsqueeze(1)) / scale[:, None, None]
-        if self.cfg.view_input:
-            view = frame_mean / frame_mean.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-            x = torch.cat([x, view.unsqueeze(1).expand(-1, n, -1)], dim=-1)
-        f = self.encode(x)
+        f = self.encode(self.normalise(points, frame_mean, scale))
         has = lengths > 0  # (B,)
         since = gap
         m = None
@@ -154,26 +166,82 @@ class StepGraph(nn.Module):
             since = gap + dts
             m = motion_features(frame_mean, mean, seen, since, counts, scale)
             since = torch.where(has, torch.zeros_like(since), since)
-        hd = self.cfg.hidden
-        if not self.recurrent:
-            h_new = self.fusion(f)
-        elif self.skip is None:
-            h_new = self.gru(f, m, hidden)
-        else:
-            h_new = torch.cat([self.gru(f, m, hidden[:, :hd]), self.skip(f)], dim=-1)
-        h = torch.where(has.unsqueeze(1), h_new, hidden)
+        h = torch.where(has.unsqueeze(1), self.fuse(f, m, hidden), hidden)
         mean_out = torch.where(has.unsqueeze(1), frame_mean, mean)
+        complete, pose = self.decode(h, mean_out, scale)
+        return complete, pose, h, mean_out, seen | has, since
+
+    def normalise(self, points: torch.Tensor, frame_mean: torch.Tensor,
+                  scale: torch.Tensor) -> torch.Tensor:
+        """The encoder's input (B, N, C): demeaned points over the input scale (and the
+        viewing direction with ``view_input``)."""
+        x = (points - frame_mean.unsqueeze(1)) / scale[:, None, None]
+        if self.cfg.view_input:
+            view = frame_mean / frame_mean.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+            x = torch.cat([x, view.unsqueeze(1).expand(-1, points.shape[1], -1)], dim=-1)
+        return x
+
+    def fuse(self, f: torch.Tensor, m: torch.Tensor | None, hidden: torch.Tensor) -> torch.Tensor:
+        """The new state (B, S) of a frame with points: GRU (and frame skip) or the baseline's
+        linear layer."""
+        if not self.recurrent:
+            return self.fusion(f)
+        if self.skip is None:
+            return self.gru(f, m, hidden)
+        hd = self.cfg.hidden
+        return torch.cat([self.gru(f, m, hidden[:, :hd]), self.skip(f)], dim=-1)
+
+    def decode(self, h: torch.Tensor, mean: torch.Tensor,
+               scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(complete (B, K, 3), pose (B, 4)) decoded from the state around ``mean``."""
+        hd = self.cfg.hidden
         d = h if self.skip is None else h[:, :hd] + h[:, hd:]
         p = self.pose_decoder(d)  # (B, 5)
         yaw = torch.atan2(p[:, 4], p[:, 3])
-        pose = torch.cat([p[:, :3] * scale.unsqueeze(1) + mean_out, yaw.unsqueeze(1)], dim=1)
+        pose = torch.cat([p[:, :3] * scale.unsqueeze(1) + mean, yaw.unsqueeze(1)], dim=1)
         shape = self.shape_decoder(d).reshape(-1, self.cfg.num_complete, 3)
         shape = shape * scale[:, None, None]
         if self.cfg.shape_frame == "sensor":
-            complete = shape + mean_out.unsqueeze(1)
-        else:
-            complete = place_points(shape, pose)
-        return complete, pose, h, mean_out, seen | has, since
+            return shape + mean.unsqueeze(1), pose
+        return place_points(shape, pose), pose
+
+
+class OneTrackGraph(StepGraph):
+    """:class:`StepGraph` for the most common pass of a stream, one track whose frame has
+    points (batch 1, no padded rows): ``(points (1, n, 3), hidden, mean, seen, scale, dts,
+    counts, gap) -> (complete, pose, hidden, mean)`` (:data:`ONE_INPUTS`,
+    :data:`ONE_OUTPUTS`; the track is seen and its time since a detection is 0 after it).
+
+    Without padding the frame mean is a plain mean and no output needs a ``where``; the
+    encoder runs channels first from the last layer of the first point MLP on, so that both
+    max-pools reduce the contiguous axis (ONNX Runtime's ``ReduceMax`` over the points axis
+    of a (1, n, C) tensor costs as much as a matrix product of the encoder)."""
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """Frame features (1, F) of the demeaned points (1, n, C)."""
+        *first, last = self.mlp1
+        h = x[0]  # (n, C)
+        for layer in first:
+            h = layer(h)
+        xt = torch.addmm(last.bias.unsqueeze(1), last.weight, h.t())  # (C1, n)
+        g = xt.amax(dim=1, keepdim=True)  # (C1, 1)
+        y = self.w2x @ xt + torch.addmm(self.b2.unsqueeze(1), self.w2g, g)  # (C2, n)
+        if self.mlp2_rest is not None:
+            y = torch.relu(y)
+            for layer in self.mlp2_rest:
+                y = (torch.addmm(layer.bias.unsqueeze(1), layer.weight, y)
+                     if isinstance(layer, nn.Linear) else layer(y))
+        return y.amax(dim=1).unsqueeze(0)
+
+    def forward(self, points, hidden, mean, seen, scale, dts, counts, gap):
+        frame_mean = points.mean(dim=1)  # (1, 3)
+        f = self.encode(self.normalise(points, frame_mean, scale))
+        m = None
+        if self.motion:
+            m = motion_features(frame_mean, mean, seen, gap + dts, counts, scale)
+        h = self.fuse(f, m, hidden)
+        complete, pose = self.decode(h, frame_mean, scale)
+        return complete, pose, h, frame_mean
 
 
 @dataclass
@@ -218,8 +286,15 @@ class TorchGraphEngine:
 class OnnxEngine:
     """:class:`StepGraph` exported to ONNX and run by ONNX Runtime (``"onnx"``).
 
-    ``threads``: ONNX Runtime's intra-op threads (None: 1); its worker threads do not spin
-    while waiting, so other processes on the same cores keep their time.
+    Two graphs: :class:`OneTrackGraph` for a pass of one track whose frame has points (a
+    single-track stream's every step), :class:`StepGraph` for the others. ``threads``: ONNX
+    Runtime's intra-op threads of every pass, whose workers do not spin while waiting (other
+    processes on the same cores keep their time). None: one thread, and while a core is free
+    (:func:`spare_cores`, read at most every :data:`SPARE_CHECK_PERIOD` s), two
+    (:data:`LARGE_PASS_THREADS`, at most the cores this process may use) for passes of at
+    least :data:`LARGE_PASS_ROWS` encoder rows and for one-track passes; the latter's second
+    thread spins during the pass (each of its matrix products is too short to wake a sleeping
+    thread for) and stops when the pass ends.
     """
 
     name = "onnx"
@@ -229,24 +304,57 @@ class OnnxEngine:
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         ort = require("onnxruntime", "the ONNX inference backend", "seqshape[fast]")
         require("onnx", "exporting the network to ONNX", "seqshape[fast]")
-        self.threads = threads
-        self.session = ort.InferenceSession(self.graph_bytes(model), _session_options(ort, threads),
-                                            providers=["CPUExecutionProvider"])
-        self._inputs = [i.name for i in self.session.get_inputs()]
+        self.threads, self.motion = threads, model.motion
+        batch, one = self.graph_bytes(model), self.one_graph_bytes(model)
+        self.session = _Session(ort, batch, threads or 1)
+        self.one = _Session(ort, one, threads or 1)
+        self.cores = _usable_cores()
+        self.more = min(LARGE_PASS_THREADS, self.cores) if threads is None else 1
+        self._ort, self._graphs = ort, (batch, one)
+        self._wide: list[_Session | None] = [None, None]
+        self._spare_at, self._spare = -np.inf, False
+
+    def wide(self, one_track: bool) -> _Session | None:
+        """The two-thread session of the batch or the one-track graph (None when ``threads``
+        is given or the process has one core), created at its first use."""
+        if self.more < 2:
+            return None
+        if self._wide[one_track] is None:
+            self._wide[one_track] = _Session(self._ort, self._graphs[one_track], self.more,
+                                             spin=one_track)
+        return self._wide[one_track]
+
+    def spare(self) -> bool:
+        """Whether a core is free (:func:`spare_cores`, cached :data:`SPARE_CHECK_PERIOD` s)."""
+        now = time.monotonic()
+        if now - self._spare_at > SPARE_CHECK_PERIOD:
+            self._spare_at, self._spare = now, spare_cores(self.cores) > 0
+        return self._spare
 
     def graph_bytes(self, model: ShapePoseNet) -> bytes:
-        """The ONNX model this engine runs."""
+        """The ONNX model of :class:`StepGraph` this engine runs."""
         return export_onnx(model)
+
+    def one_graph_bytes(self, model: ShapePoseNet) -> bytes:
+        """The ONNX model of :class:`OneTrackGraph` this engine runs."""
+        return export_onnx(model, one_track=True)
 
     def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
         """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""
-        arrays = inputs.arrays()
-        return tuple(self.session.run(None, {k: arrays[k] for k in self._inputs}))
+        b, n = inputs.points.shape[:2]
+        if b == 1 and inputs.lengths[0] == n:  # one track with points, no padding
+            one = self.wide(True) if self.more > 1 and self.spare() else self.one
+            complete, pose, hidden, mean = one.run(inputs)
+            gap = np.zeros(1, np.float32) if self.motion else inputs.gap
+            return complete, pose, hidden, mean, np.ones(1, bool), gap
+        if self.more > 1 and b * n >= LARGE_PASS_ROWS and self.spare():
+            return tuple(self.wide(False).run(inputs))
+        return tuple(self.session.run(inputs))
 
 
 class OnnxInt8Engine(OnnxEngine):
     """``"onnx"`` with the weights of the layers :data:`INT8_LAYERS` quantised to int8
-    (``"onnx-int8"``, :func:`quantize_onnx`), built in memory at load time (about 1 s)."""
+    (``"onnx-int8"``, :func:`quantize_onnx`), built in memory at load time (about 1.5 s: two graphs)."""
 
     name = "onnx-int8"
     tolerance = INT8_TOLERANCE
@@ -254,15 +362,54 @@ class OnnxInt8Engine(OnnxEngine):
     def graph_bytes(self, model: ShapePoseNet) -> bytes:
         return quantize_onnx(export_onnx(model), INT8_LAYERS)
 
+    def one_graph_bytes(self, model: ShapePoseNet) -> bytes:
+        return quantize_onnx(export_onnx(model, one_track=True), INT8_LAYERS)
 
-def _session_options(ort, threads: int | None):
-    """ONNX Runtime session options of the ONNX engines (see :class:`OnnxEngine`)."""
+
+class _Session:
+    """An ONNX Runtime session of one graph and thread count, fed from :class:`StepInputs`
+    (the inputs the exporter kept: a model without motion inputs has no ``dts``...)."""
+
+    def __init__(self, ort, graph: bytes, threads: int, spin: bool = False):
+        self.session = ort.InferenceSession(graph, _session_options(ort, threads, spin),
+                                            providers=["CPUExecutionProvider"])
+        self.inputs = [i.name for i in self.session.get_inputs()]
+
+    def run(self, inputs: StepInputs) -> list[np.ndarray]:
+        return self.session.run(None, {k: getattr(inputs, k) for k in self.inputs})
+
+
+def _usable_cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def spare_cores(cores: int) -> int:
+    """Of ``cores`` (this process's), how many no other task wants right now: ``cores``
+    minus the kernel's count of runnable tasks (``/proc/loadavg``, which counts the calling
+    thread); 0 where the count is not available (not Linux)."""
+    try:
+        with open("/proc/loadavg", "rb") as f:
+            running = int(f.read().split()[3].split(b"/")[0])
+    except (OSError, ValueError, IndexError):
+        return 0
+    return max(0, cores - running)
+
+
+def _session_options(ort, threads: int | None, spin: bool = False):
+    """ONNX Runtime session options of the ONNX engines (see :class:`OnnxEngine`): with
+    ``spin`` the workers spin for work during a run and stop when it returns."""
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = int(threads or 1)
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
+    if spin:
+        opts.add_session_config_entry("session.force_spinning_stop", "1")
     opts.log_severity_level = 3
     return opts
 
@@ -306,18 +453,23 @@ def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes:
     return out
 
 
-def export_onnx(model: ShapePoseNet) -> bytes:
+def export_onnx(model: ShapePoseNet, one_track: bool = False) -> bytes:
     """The ONNX model (bytes) of one streaming step of ``model`` (:class:`StepGraph`), with
-    dynamic batch and point axes. PyTorch's exporter needs the ``onnx`` package."""
-    graph = StepGraph(model).eval()
-    example = example_inputs(model, batch=2, points=5).arrays()
+    dynamic batch and point axes; with ``one_track`` :class:`OneTrackGraph` (batch 1, dynamic
+    point axis). PyTorch's exporter needs the ``onnx`` package."""
+    inputs, outputs = (ONE_INPUTS, ONE_OUTPUTS) if one_track else (GRAPH_INPUTS, GRAPH_OUTPUTS)
+    graph = (OneTrackGraph if one_track else StepGraph)(model).eval()
+    example = example_inputs(model, batch=1 if one_track else 2, points=5).arrays()
+    if one_track:
+        axes = {"points": {1: "points"}}
+    else:
+        axes = {name: {0: "batch"} for name in (*inputs, *outputs)}
+        axes["points"] = {0: "batch", 1: "points"}
     buf = io.BytesIO()
-    axes = {name: {0: "batch"} for name in (*GRAPH_INPUTS, *GRAPH_OUTPUTS)}
-    axes["points"] = {0: "batch", 1: "points"}
     with warnings.catch_warnings(), torch.inference_mode():
         warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation notices
-        torch.onnx.export(graph, tuple(torch.from_numpy(a) for a in example.values()), buf,
-                          input_names=list(GRAPH_INPUTS), output_names=list(GRAPH_OUTPUTS),
+        torch.onnx.export(graph, tuple(torch.from_numpy(example[k]) for k in inputs), buf,
+                          input_names=list(inputs), output_names=list(outputs),
                           dynamic_axes=axes, opset_version=ONNX_OPSET, dynamo=False)
     return buf.getvalue()
 
@@ -348,7 +500,11 @@ def length_buckets(lengths: np.ndarray, fill: float = BUCKET_FILL,
     >>> [g.tolist() for g in length_buckets(np.array([10, 256, 40, 250, 200]), min_rows=1)]
     [[1, 3, 4], [2], [0]]
     """
+    if len(lengths) < 2:
+        return [np.arange(len(lengths))]
     order = np.argsort(-np.asarray(lengths), kind="stable")
+    if len(order) < 2 * min_rows:  # one group whatever the lengths (the loop's outcome)
+        return [order]
     desc = np.asarray(lengths)[order]
     groups, start = [], 0
     while start < len(order):
@@ -383,17 +539,18 @@ def pack_frames(frames: list[np.ndarray], buffer: np.ndarray
 
 
 def check_stream(num_points: int, seed: int = 0) -> list[dict]:
-    """The steps of :func:`seqshape.model.estimator.check_backend`: three tracks over five steps (box-like clouds of
-    0, 1, about N/2 and 3N points, empty frames, a track that starts late, timestamps known
-    and unknown, a length hint)."""
+    """The steps of :func:`seqshape.model.estimator.check_backend`: three tracks over six
+    steps (box-like clouds of 0, 1, about N/2 and 3N points, empty frames, a track that starts
+    late, timestamps known and unknown, a length hint, a step in which one track alone has
+    points: the ONNX engines' one-track graph)."""
     rng = np.random.default_rng(seed)
 
     def cloud(n: int, x: float) -> np.ndarray:
         return (rng.normal(size=(n, 3)) * [2.0, 0.9, 0.6] + [x, 3.0, -0.8]).astype(np.float32)
 
     half = max(2, num_points // 2)
-    counts = [(half, 1, 0), (3 * num_points, 0, half), (0, half, 1), (half, 3 * num_points,
-                                                                      half), (1, half, 0)]
+    counts = [(half, 1, 0), (3 * num_points, 0, half), (0, half, 1),
+              (half, 3 * num_points, half), (1, half, 0), (0, half, 0)]
     steps = []
     for t, row in enumerate(counts):
         ids = ["a", "b", "c"] if t != 3 else ["a", "b", "fresh"]

@@ -180,7 +180,7 @@ class Estimate:
     valid: bool = field(default=True, init=False)
 
     def __post_init__(self):
-        self.valid = bool(np.all(np.isfinite(self.pose)))
+        self.valid = bool(np.isfinite(self.pose).all())
 
 
 @dataclass
@@ -205,9 +205,12 @@ class Estimator:
         model: a trained :class:`ShapePoseNet` (put in eval mode).
         threads: intra-op threads of the backend. With ``backend="torch"`` this is
             ``torch.set_num_threads`` (process-wide; None leaves it alone); the fast backends
-            use their own setting for their steps only (None: 1 thread, the fastest for
-            streaming batches here and robust when other processes share the cores; see
-            docs/model.md "Inference backends").
+            use their own setting for their steps only. None: 1 thread (robust when other
+            processes keep the cores busy), and for the ONNX backends 2 threads while a core
+            is free, on passes of many tracks (at least
+            :data:`~seqshape.model.engine.LARGE_PASS_ROWS` encoder rows) and of one track
+            (:class:`~seqshape.model.engine.OnnxEngine`); see docs/model.md "Inference
+            backends".
         seed: seeds the per-track random subsets of frames with more than N points.
         heading: the heading post-processing (:class:`HeadingConfig`; None = the defaults,
             which act only on steps given ego poses).
@@ -350,16 +353,14 @@ class Estimator:
         cfg = self.model.cfg
         if cfg.scale_norm == "none":
             return None
-        out = []
+        lengths = []
         for i, (st, f) in enumerate(zip(states, frames, strict=True)):
             if len(f):
                 here = points_length(f)
                 st.length = max(st.length, here) if self.recurrent else here
             hint = _length_hint(sizes, i)
-            if hint is None:
-                hint = max(st.length, _class_floor(classes, i))
-            out.append(cfg.scale_for(hint))
-        return np.asarray(out, dtype=np.float32)
+            lengths.append(max(st.length, _class_floor(classes, i)) if hint is None else hint)
+        return cfg.scale_for(np.asarray(lengths, dtype=np.float64)).astype(np.float32)
 
     def _dts(self, states: list[_TrackState], timestamps: Sequence | None) -> np.ndarray:
         """(B,) float32 time steps of a ``motion_input`` model for this step; advances each
@@ -428,12 +429,17 @@ class Estimator:
                   counts: list[int], scale: np.ndarray, dts: np.ndarray | None) -> None:
         sub = [states[i] for i in rows]
         points, self._buffer = pack_frames([frames[i] for i in rows], self._buffer)
-        zeros = np.zeros(len(rows), np.float32)
+        if len(rows) == 1:  # one track (a single-track stream's every step): views, no copies
+            i = rows[0]
+            hidden, mean, picked = sub[0].hidden[None], sub[0].mean[None], slice(i, i + 1)
+        else:
+            hidden, mean = np.stack([st.hidden for st in sub]), np.stack([st.mean for st in sub])
+            picked = rows
         inputs = StepInputs(
-            points, np.array([len(frames[i]) for i in rows], np.int64),
-            np.stack([st.hidden for st in sub]), np.stack([st.mean for st in sub]),
-            np.array([st.seen for st in sub], bool), scale[rows],
-            zeros if dts is None else dts[rows], np.array([counts[i] for i in rows], np.int64),
+            points, np.array([len(frames[i]) for i in rows], np.int64), hidden, mean,
+            np.array([st.seen for st in sub], bool), scale[picked],
+            np.zeros(len(rows), np.float32) if dts is None else dts[picked],
+            np.array([counts[i] for i in rows], np.int64),
             np.array([st.gap for st in sub], np.float32))
         complete, pose, hidden, mean, seen, gap = self._engine.run(inputs)
         pose = pose.astype(np.float64)
