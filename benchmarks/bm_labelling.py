@@ -25,6 +25,12 @@ matching always uses every instance. The per-distance breakdown goes into result
 The sc-* rows need estimator weights: ``--checkpoint PATH`` or ``pretrained`` (skipped with a
 note when they cannot be loaded).
 
+``--end-to-end [--baseline-src OLD/src] [--workers 1 2]``: ``seqshape label --sequence all``
+on every log of ``--scenes``, timed from the outside (start-up, estimator load and writing
+included), per mode and worker count, old and new alternating ``--repeats`` times: wall
+seconds and frames/s (medians), the ratio, whether the files are byte-identical, and each
+side's % miss / mIoU against the scenes' reference.
+
 ``--stages [--baseline-src OLD/src]``: speed only, per stage. Each of ``--modes`` (sc-gt and
 sc-seg by default) labels the sequences in a fresh process (``benchmarks/_label_stages.py``),
 once with cProfile for the seconds per stage and ``--repeats`` times without it for frames/s,
@@ -258,6 +264,74 @@ def run_stages(root: Path, sequences, args) -> None:
     print(f"labels in {out_dir}")
 
 
+def _cli_run(src: Path | None, root: Path, mode: str, workers: int, checkpoint: str,
+             out: Path) -> tuple[float, float]:
+    """(wall, CPU) seconds of one ``seqshape label --sequence all`` in a fresh process
+    (start-up included; CPU: user + system of it and its workers), with the package at
+    ``src`` (None: this one)."""
+    import resource
+    import shutil
+    import subprocess
+
+    env = dict(os.environ, SEQSHAPE_PROGRESS="0")
+    if src is not None:
+        env["PYTHONPATH"] = str(src)
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [sys.executable, "-m", "seqshape.cli", "label", "--kitti", str(root), "--sequence",
+           "all", "--mode", mode, "--workers", str(workers), "--checkpoint", checkpoint,
+           "--out", str(out)]
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    secs = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if done.returncode:
+        raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
+    return secs, (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
+def run_end_to_end(root: Path, sequences, args) -> None:
+    """The ``--end-to-end`` table (module doc): ``seqshape label --sequence all`` per mode and
+    worker count, old and new alternating; frames/s, ratios, byte equality, scores."""
+    out_dir = args.out or Path(tempfile.mkdtemp(prefix="bm_labelling_e2e_"))
+    versions = {"new": None} if args.baseline_src is None else {"old": args.baseline_src,
+                                                                "new": None}
+    frames = sum(len(KittiTrackingSequence(root, s).frames) for s in sequences)
+    print(f"scenes: {root} ({len(sequences)} logs, {frames} frames); "
+          f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, load "
+          f"{os.getloadavg()[0]:.1f}", flush=True)
+    rows = []
+    for mode in args.modes:
+        for workers in args.workers:
+            secs: dict[str, list[float]] = {v: [] for v in versions}
+            cpu: dict[str, list[float]] = {v: [] for v in versions}
+            for _ in range(max(args.repeats, 1)):
+                for v, src in versions.items():
+                    wall, used = _cli_run(src, root, mode, workers, args.checkpoint,
+                                          out_dir / mode / f"{v}{workers}")
+                    secs[v].append(wall)
+                    cpu[v].append(used)
+            fps = {v: frames / statistics.median(x) for v, x in secs.items()}
+            row = [f"{mode}, --workers {workers}",
+                   *(f"{statistics.median(secs[v]):.1f} s ({statistics.median(cpu[v]):.1f} "
+                     f"CPU s), {fps[v]:.2f}" for v in versions)]
+            if len(versions) > 1:
+                same = all((out_dir / mode / f"old{workers}" / f"{s}.json").read_bytes()
+                           == (out_dir / mode / f"new{workers}" / f"{s}.json").read_bytes()
+                           for s in sequences)
+                row += [f"{fps['new'] / fps['old']:.2f}", "yes" if same else "no"]
+            rows.append(tuple(row))
+            print(f"  {row}  (load {os.getloadavg()[0]:.1f})", flush=True)
+        for v in versions:
+            miss, miou = _scores(out_dir / mode / f"{v}{args.workers[0]}", root, sequences,
+                                 None)
+            print(f"{mode} {v}: % miss {miss:.3f}, mIoU {miou:.5f} against the reference")
+    print()
+    print_table(("run", *(f"{v} (wall (CPU), frames/s)" for v in versions),
+                 *(["new / old", "files equal"] if len(versions) > 1 else [])), rows)
+    print(f"labels in {out_dir}")
+
+
 def main(argv=None) -> int:
     p = bench_parser(__doc__, repeats=3, min_repeats=0,
                      repeats_help="timed runs for frames/s (0: skip)")
@@ -296,11 +370,22 @@ def main(argv=None) -> int:
     p.add_argument("--stages", action="store_true",
                    help="speed per stage only (module doc); --modes default sc-gt sc-seg")
     p.add_argument("--baseline-src", type=Path, default=None,
-                   help="--stages: also run the package at this src folder (before/after)")
+                   help="--stages, --end-to-end: also run the package at this src folder "
+                        "(before/after)")
+    p.add_argument("--end-to-end", action="store_true",
+                   help="time `seqshape label --sequence all` (start-up included) on every "
+                        "log of --scenes (module doc); --modes default sc-gt sc-seg")
+    p.add_argument("--workers", type=int, nargs="+", default=[1, 2],
+                   help="--end-to-end: the --workers values to time")
     args = p.parse_args(argv)
 
     root = ensure_scenes(args.scenes, args.skip + args.sequences, args.frames, args.seed)
     sequences = KittiTrackingSequence.sequences(root)[args.skip:args.skip + args.sequences]
+    if args.end_to_end:
+        if args.modes == p.get_default("modes"):
+            args.modes = ["sc-gt", "sc-seg"]
+        run_end_to_end(root, KittiTrackingSequence.sequences(root), args)
+        return 0
     if args.stages:
         if args.modes == p.get_default("modes"):
             args.modes = ["sc-gt", "sc-seg"]

@@ -168,15 +168,59 @@ def _projected_vehicles(rng, n_vehicles=6):
     return out
 
 
+#: pixels a mask drawn from the boundary loops may differ by from the triangles' fill: this
+#: many, plus this share of its area (docs/amodal.md, "Speed": 12 pixels in 10 of 1,942
+#: kitti-like masks, none more than 3; 6 of 27,369 for a convex hull, ``alpha=0``)
+LOOP_FILL_TOLERANCE = (3, 5e-4)
+
+
+def _assert_fill_close(got, want, msg):
+    diff = int(np.count_nonzero(got != want))
+    most = LOOP_FILL_TOLERANCE[0] + LOOP_FILL_TOLERANCE[1] * np.count_nonzero(want)
+    assert diff <= most, f"{msg}: {diff} pixels differ"
+
+
 def test_fast_mask_equals_the_former_on_projected_vehicles():
-    """Byte-equal masks on real-looking projections (near: thousands of points per pixel
-    row, far: a few pixels), with the automatic and fixed radii."""
+    """The masks on real-looking projections (near: thousands of points per pixel row, far: a
+    few pixels), with the automatic and fixed radii, equal the former ones up to
+    LOOP_FILL_TOLERANCE pixels each (equal, in all, but for 0.001 % of their pixels)."""
     rng = np.random.default_rng(11)
     size = (375, 1242)
+    diff = area = 0
     for k, uv in enumerate(_projected_vehicles(rng, 10)):
         for alpha in (None, 0.5, 0):
-            got = alpha_shape_mask(uv, size, alpha=alpha)
-            np.testing.assert_array_equal(got, _former_mask(uv, size, alpha), err_msg=str(k))
+            got, want = alpha_shape_mask(uv, size, alpha=alpha), _former_mask(uv, size, alpha)
+            _assert_fill_close(got, want, f"vehicle {k}, alpha {alpha}")
+            diff += np.count_nonzero(got != want)
+            area += np.count_nonzero(want)
+    assert area > 10_000 and diff <= 1e-4 * area
+
+
+def test_boundary_loops_are_the_union_boundary():
+    """The loops of :func:`_fill_polygons` hold every edge met by one kept triangle exactly once,
+    and no edge shared by two (so the even-odd fill is the triangles' union)."""
+    from seqshape.amodal import alpha as A
+
+    rng = np.random.default_rng(4)
+    for uv in _projected_vehicles(rng, 4) + [rng.normal([80, 45], [25, 12], (700, 2))]:
+        pts = A._dedup(uv, A.GRID_PX)
+        verts = A.delaunay_triangles(pts)
+        radii = circumradii(verts)
+        keep = radii < 3.0 * np.median(radii)
+        ids = A._vertex_ids(pts, verts, A.GRID_PX)[keep]
+        loops, _ = A._fill_polygons(pts, verts[keep], ids, (375, 1242))
+        edges = {}
+        for tri in ids.tolist():
+            for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0])):
+                key = (min(a, b), max(a, b))
+                edges[key] = edges.get(key, 0) + 1
+        want = sorted(k for k, n in edges.items() if n == 1)
+        index = {tuple(p): i for i, p in enumerate(A._to_fixed(pts, (375, 1242)).tolist())}
+        got = []
+        for loop in loops:
+            ring = [index[tuple(p)] for p in loop.tolist()]
+            got += [(min(a, b), max(a, b)) for a, b in zip(ring, ring[1:] + ring[:1], strict=True)]
+        assert sorted(got) == want
 
 
 def test_fast_mask_equals_the_former_on_random_and_degenerate_clouds():
@@ -198,7 +242,7 @@ def test_fast_mask_equals_the_former_on_random_and_degenerate_clouds():
         for grid in (None, 0.0, 0.1):
             want = _former_mask(uv, size, grid=grid)
             got = alpha_shape_mask(uv, size, grid=A_GRID if grid is None else grid)
-            np.testing.assert_array_equal(got, want, err_msg=f"cloud {k}, grid {grid}")
+            _assert_fill_close(got, want, f"cloud {k}, grid {grid}")
 
 
 A_GRID = 0.25
@@ -217,14 +261,15 @@ def test_nearest_neighbours_from_the_triangles_equal_the_kd_tree():
     for uv in clouds:
         pts = A._dedup(uv, A.GRID_PX)
         verts = A.delaunay_triangles(pts)
-        nn = A._nn_from_triangles(pts, verts, A._sides(verts), A.GRID_PX) if len(verts) else None
+        ids = A._vertex_ids(pts, verts, A.GRID_PX) if len(verts) else None
+        nn = A._nn_from_triangles(pts, ids, A._sides(verts)) if len(verts) else None
         if nn is None:
             continue
         certified += 1
         d, _ = cKDTree(pts).query(pts, k=2)
         np.testing.assert_array_equal(nn, d[:, 1])  # bit for bit
         radii = circumradii(verts)
-        assert (A._auto_radius_fast(pts, verts, A._sides(verts), radii, A.GRID_PX)
+        assert (A._auto_radius_fast(pts, ids, A._sides(verts), radii)
                 == auto_alpha_radius(pts, radii, distinct=True))
     # Subdiv2D leaves out some hull slivers of sparse clouds (then the KD-tree answers; 7 %
     # of the kitti-like vehicles): half of these clouds are certified
@@ -233,9 +278,11 @@ def test_nearest_neighbours_from_the_triangles_equal_the_kd_tree():
     pts = A._dedup(rng.normal(0, 5, (200, 2)), A.GRID_PX)
     verts = A.delaunay_triangles(pts)
     sides = A._sides(verts)
-    assert A._nn_from_triangles(pts, verts, sides, 0.0) is None
-    assert A._nn_from_triangles(pts + 0.1, verts + 0.1, sides, A.GRID_PX) is None
-    assert A._nn_from_triangles(pts, verts[1:], A._sides(verts[1:]), A.GRID_PX) is None
+    assert A._vertex_ids(pts, verts, 0.0) is None
+    assert A._vertex_ids(pts + 0.1, verts + 0.1, A.GRID_PX) is None
+    assert A._nn_from_triangles(pts, None, sides) is None
+    ids = A._vertex_ids(pts, verts, A.GRID_PX)
+    assert A._nn_from_triangles(pts, ids[1:], A._sides(verts[1:])) is None
 
 
 def test_circumradii_bit_for_bit_as_with_norms():
