@@ -23,6 +23,7 @@ import pytest
 from seqshape._io import atomic_write_bytes
 from seqshape._runner import (
     ORPHAN_EXIT,
+    WorkerPool,
     check_settings,
     parse_shard,
     plan_work,
@@ -217,6 +218,24 @@ def test_pool_errors_reach_the_caller_and_stop_the_pool():
         list(run_pool(_fail_on_three, range(6), 2))
     with pytest.raises(ValueError, match="item 3"):
         list(run_pool(_fail_on_three, range(6), 1))
+
+
+def test_worker_pool_runs_tasks_as_they_come():
+    with WorkerPool(2, initializer=_set_offset, initargs=(5,)) as pool:
+        tasks = [pool.submit(_offset_square, x) for x in range(5)]
+        assert [t.get() for t in tasks] == [(x, x * x + 5) for x in range(5)]
+        assert all(pool.submit(_sigint_ignored, 0).get() for _ in range(2))
+        broken = pool.submit(_fail_on_three, 3)
+        with pytest.raises(ValueError, match="item 3"):
+            broken.get()
+        assert pool.submit(_fail_on_three, 4).get() == 4  # the pool goes on
+    with pytest.raises(_Stop), WorkerPool(1) as pool:  # an error in the parent ends the pool
+        task = pool.submit(_offset_square, 2)
+        raise _Stop(task)
+    with pytest.raises(ValueError, match="item 3"), WorkerPool(1) as pool:
+        pool.submit(_fail_on_three, 3).get()
+    with pytest.raises(ConfigError, match="workers"):
+        WorkerPool(0)
 
 
 def test_pool_progress_weights_and_bad_workers(monkeypatch):

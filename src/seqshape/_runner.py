@@ -1,6 +1,6 @@
 """The one runner of long commands that write one output per item (tracks, scene sequences).
 
-Five pieces, each usable alone, shared by ``seqshape generate`` and ``seqshape scenes``:
+Six pieces, each usable alone, shared by ``seqshape generate`` and ``seqshape scenes``:
 
 * :func:`check_settings`: one folder, one set of settings. The first run writes a JSON
   settings file; a later run into the same folder must bring equal settings (a resume) or is
@@ -17,6 +17,9 @@ Five pieces, each usable alone, shared by ``seqshape generate`` and ``seqshape s
   pool and re-raises :class:`KeyboardInterrupt` (the CLI then says "rerun to resume"). Workers
   die with their parent (:func:`watch_parent`): a ``kill -9`` of the command leaves no worker
   running on.
+* :class:`WorkerPool`: the same workers for a parent that hands out tasks as it makes them
+  (``seqshape label``: frames of one log are drawn in parallel while the next log is
+  completed).
 * :func:`watch_parent`: the watchdog every worker pool of seqshape starts in its workers
   (this one, the EMD pool of :mod:`seqshape.evaluation.runner`, the log pool of
   :mod:`seqshape.data.tracks_export`).
@@ -270,3 +273,40 @@ class _Indexed:
     def __call__(self, item):
         j, u = item
         return j, self.fn(u)
+
+
+class WorkerPool:
+    """Spawned worker processes that take tasks as they come, for a parent that makes the
+    work while the workers do it (``seqshape label``: the parent completes a log's tracks, the
+    workers draw the masks of the logs completed before).
+
+    Workers start at once (so their imports overlap the parent's own start-up), each with
+    ``initializer(*initargs)``, ignore SIGINT and end with their parent, as in
+    :func:`run_pool`. :meth:`submit` returns a ``multiprocessing.pool.AsyncResult``
+    (``ready()``, ``get()``; a task's exception is raised by ``get``). Use it as a context
+    manager: leaving it normally waits for the tasks; an exception (Ctrl-C included)
+    terminates the workers and goes on.
+    """
+
+    def __init__(self, workers: int, initializer: Callable | None = None,
+                 initargs: tuple = ()):
+        if workers < 1:
+            raise ConfigError(f"workers must be >= 1, got {workers}")
+        self.workers = workers
+        ctx = multiprocessing.get_context("spawn")
+        self._pool = ctx.Pool(workers, initializer=_init_worker,
+                              initargs=(os.getpid(), initializer, initargs))
+
+    def submit(self, fn: Callable, unit: Any):
+        """Run ``fn(unit)`` in a worker (``fn`` and ``unit`` must pickle)."""
+        return self._pool.apply_async(fn, (unit,))
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self._pool.close()
+        else:
+            self._pool.terminate()
+        self._pool.join()

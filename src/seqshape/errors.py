@@ -16,6 +16,12 @@ class DataError(SeqshapeError):
     'tracks/a.npz: missing array poses'
     >>> str(DataError("labels.txt", "expected 17 columns, got 3", line=12))
     'labels.txt:12: expected 17 columns, got 3'
+
+    It survives pickling (a worker process raises it, the pool re-raises it in the parent):
+
+    >>> import pickle
+    >>> str(pickle.loads(pickle.dumps(DataError("a.npz", "bad", line=3))))
+    'a.npz:3: bad'
     """
 
     def __init__(self, path: str | Path, message: str, line: int | None = None):
@@ -24,6 +30,11 @@ class DataError(SeqshapeError):
         self.message = message
         where = f"{self.path}:{line}" if line is not None else self.path
         super().__init__(f"{where}: {message}")
+
+    def __reduce__(self):
+        # Exception pickles as cls(*self.args): the one formatted string, which this
+        # constructor cannot take; rebuild from the parts (worker pools re-raise it here).
+        return (type(self), (self.path, self.message, self.line), self.__dict__)
 
 
 class ConfigError(SeqshapeError):

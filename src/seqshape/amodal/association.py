@@ -204,56 +204,102 @@ def instance_masks_by_frame(log, camera: str, instances_path, categories=None
     return out
 
 
-def segment_sequence(log, instances_path, min_points: int = 5, gate: float = 3.0,
-                     categories=None, max_gap: int = 0, unsupported: dict | None = None,
-                     camera: str | None = None) -> list:
-    """sc-seg tracks of a :class:`~seqshape.data.sequence.DrivingLog` seen by ``camera``
-    (default: the log's default camera).
+@dataclass
+class FrameSegments:
+    """What one frame contributes to sc-seg's tracks (:func:`segment_frames`): its
+    detections (centroids in the common frame, 2D masks), their points ``(N_i, 3)`` float32,
+    category ids and COCO segmentations, and the 2D instances dropped for too few points
+    ``[(mask or None, COCO annotation, ground plane)]``. Pickles with its masks bit-packed
+    (a worker process sends it back)."""
 
-    Reads the COCO instance masks (``instances_path``; :func:`instance_masks_by_frame`),
-    segments every frame (:func:`segment_frame`), drops instances with
-    fewer than ``min_points`` points, associates the rest (:func:`associate`; centroids in the
-    log's reference frame via its ego poses when it has them) and returns a list of
-    :class:`~seqshape.amodal.refine.TrackInput` (no ground-truth poses; ``category_id`` the
-    most frequent category of the track's masks). ``max_gap > 0`` fills the short gaps of
-    each track with empty frames (:func:`fill_gaps`). ``unsupported``: a dict that receives,
-    per frame, the ``(mask, annotation, ground plane)`` of every 2D instance dropped for too
-    few points (:mod:`seqshape.amodal.fallback`).
-    """
-    camera = camera or log.default_camera
-    by_frame = instance_masks_by_frame(log, camera, instances_path, categories)
+    frame: int
+    detections: list[Detection] = field(default_factory=list)
+    points: list[np.ndarray] = field(default_factory=list)
+    categories: list[int] = field(default_factory=list)
+    segmentations: list = field(default_factory=list)
+    unsupported: list[tuple] = field(default_factory=list)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["detections"] = [(d.frame, d.centroid, d.index, _packed(d.mask))
+                               for d in self.detections]
+        state["unsupported"] = [(_packed(m), a, p) for m, a, p in self.unsupported]
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        state = dict(state)
+        state["detections"] = [Detection(f, c, _unpacked(m), i)
+                               for f, c, i, m in state["detections"]]
+        state["unsupported"] = [(_unpacked(m), a, p) for m, a, p in state["unsupported"]]
+        self.__dict__.update(state)
+
+
+def _packed(mask: np.ndarray | None) -> tuple | None:
+    """A bool mask as ``(shape, packed bits)`` (an eighth of its bytes), or None."""
+    return None if mask is None else (mask.shape, np.packbits(mask, axis=None))
+
+
+def _unpacked(packed: tuple | None) -> np.ndarray | None:
+    if packed is None:
+        return None
+    shape, bits = packed
+    return np.unpackbits(bits, count=int(np.prod(shape))).reshape(shape).view(bool)
+
+
+def segment_frames(log, camera: str, annotations: dict[int, list[dict]], frames,
+                   min_points: int = 5, desc: str | None = None) -> list[FrameSegments]:
+    """The :class:`FrameSegments` of each of ``frames`` of ``log`` (in that order), seen by
+    ``camera``, from their COCO annotations ``{frame: [annotation, ...]}``
+    (:func:`instance_masks_by_frame`): the masks decoded, the sweep's ground plane fitted, the
+    points segmented (:func:`segment_frame`); instances with fewer than ``min_points`` points
+    are unsupported. Each frame depends on itself only (the ground plane is seeded per
+    sweep), so frames can be segmented apart and in any grouping. ``desc``: a progress bar."""
+    frames = list(frames)
+    it = frames if desc is None else progress(frames, desc=desc, unit="frame")
+    return [_segment_one(log, camera, annotations.get(f, []), f, min_points) for f in it]
+
+
+def _segment_one(log, camera: str, anns: list[dict], frame: int,
+                 min_points: int) -> FrameSegments:
+    out = FrameSegments(frame)
+    masks = [rle_to_mask(a["segmentation"]) for a in anns]
+    if not masks:
+        return out
+    scan = np.asarray(log.points(frame))
+    plane = ground_plane(scan[:, :3])
+    parts = segment_frame(scan, log.camera(camera, frame), masks, plane=plane)
+    ego = log.ego_pose(frame)
+    for m, (a, p) in enumerate(zip(anns, parts, strict=True)):
+        if len(p) < min_points:
+            out.unsupported.append((masks[m], a, plane))
+            continue
+        c = to_common_frame(np.median(p, axis=0), ego)
+        out.detections.append(Detection(frame, c, masks[m], len(out.detections)))
+        out.points.append(p)
+        out.categories.append(int(a["category_id"]))
+        out.segmentations.append(a["segmentation"])
+    return out
+
+
+def tracks_from_segments(log, segments: Sequence[FrameSegments], gate: float = 3.0,
+                         max_gap: int = 0, unsupported: dict | None = None) -> list:
+    """sc-seg's tracks (:func:`segment_sequence`) from the :class:`FrameSegments` of the
+    log's frames in frame order: the detections associated (:func:`associate`), each track a
+    :class:`~seqshape.amodal.refine.TrackInput` (category: the most frequent of its masks;
+    ego poses when the log has them). ``unsupported`` receives ``{frame: [(mask, annotation,
+    ground plane)]}`` of the dropped instances."""
     ego = {f: log.ego_pose(f) for f in log.frames}
     ego = {f: e for f, e in ego.items() if e is not None}
-    per_frame, det_points, det_cats, det_rles = [], [], [], []
-    for frame in progress(log.frames, desc=f"segment {log.name}", unit="frame"):
-        fa = by_frame[frame]
-        masks = [rle_to_mask(a["segmentation"]) for a in fa]
-        plane, parts = None, []
-        if masks:
-            scan = np.asarray(log.points(frame))
-            plane = ground_plane(scan[:, :3])
-            parts = segment_frame(scan, log.camera(camera, frame), masks, plane=plane)
-        dets, pts, cats, rles = [], [], [], []
-        for m, (a, p) in enumerate(zip(fa, parts, strict=True)):
-            if len(p) < min_points:
-                if unsupported is not None:
-                    unsupported.setdefault(frame, []).append((masks[m], a, plane))
-                continue
-            c = to_common_frame(np.median(p, axis=0), ego.get(frame))
-            dets.append(Detection(frame, c, masks[m], len(dets)))
-            pts.append(p)
-            cats.append(int(a["category_id"]))
-            rles.append(a["segmentation"])
-        per_frame.append(dets)
-        det_points.append(pts)
-        det_cats.append(cats)
-        det_rles.append(rles)
-    ids = associate(per_frame, gate=gate)
+    if unsupported is not None:
+        for seg in segments:
+            if seg.unsupported:
+                unsupported.setdefault(seg.frame, []).extend(seg.unsupported)
+    ids = associate([seg.detections for seg in segments], gate=gate)
     tracks: dict[int, TrackInput] = {}
     cat_votes: dict[int, list[int]] = {}
-    for dets, pts, cats, rles, tids in zip(per_frame, det_points, det_cats, det_rles, ids,
-                                           strict=True):
-        for d, p, c, r, t in zip(dets, pts, cats, rles, tids, strict=True):
+    for seg, tids in zip(segments, ids, strict=True):
+        for d, p, c, r, t in zip(seg.detections, seg.points, seg.categories,
+                                 seg.segmentations, tids, strict=True):
             tr = tracks.setdefault(t, TrackInput(f"{log.name}_seg{t:04d}", [], [], None,
                                                  4, t, masks=[]))
             tr.frames.append(d.frame)
@@ -265,3 +311,28 @@ def segment_sequence(log, instances_path, min_points: int = 5, gate: float = 3.0
         tr.ego = _ego_of(ego, tr.frames)
     out = [tracks[t] for t in sorted(tracks)]
     return [fill_gaps(t, max_gap, ego) for t in out] if max_gap > 0 else out
+
+
+def segment_sequence(log, instances_path, min_points: int = 5, gate: float = 3.0,
+                     categories=None, max_gap: int = 0, unsupported: dict | None = None,
+                     camera: str | None = None) -> list:
+    """sc-seg tracks of a :class:`~seqshape.data.sequence.DrivingLog` seen by ``camera``
+    (default: the log's default camera).
+
+    Reads the COCO instance masks (``instances_path``; :func:`instance_masks_by_frame`),
+    segments every frame (:func:`segment_frames`: :func:`segment_frame`; instances with
+    fewer than ``min_points`` points are dropped), associates the rest in frame order
+    (:func:`tracks_from_segments`: :func:`associate`; centroids in the log's reference frame
+    via its ego poses when it has them) and returns a list of
+    :class:`~seqshape.amodal.refine.TrackInput` (no ground-truth poses; ``category_id`` the
+    most frequent category of the track's masks). ``max_gap > 0`` fills the short gaps of
+    each track with empty frames (:func:`fill_gaps`). ``unsupported``: a dict that receives,
+    per frame, the ``(mask, annotation, ground plane)`` of every 2D instance dropped for too
+    few points (:mod:`seqshape.amodal.fallback`). The per-frame part can run apart, in
+    chunks of frames (``seqshape label --workers``), and give the same tracks.
+    """
+    camera = camera or log.default_camera
+    by_frame = instance_masks_by_frame(log, camera, instances_path, categories)
+    segments = segment_frames(log, camera, by_frame, log.frames, min_points,
+                              desc=f"segment {log.name}")
+    return tracks_from_segments(log, segments, gate, max_gap, unsupported)

@@ -43,7 +43,13 @@ from seqshape._io import contained_path
 from seqshape._progress import progress
 from seqshape.amodal.accumulate import gt_accumulation_clouds
 from seqshape.amodal.align import AlignConfig
-from seqshape.amodal.association import segment_sequence
+from seqshape.amodal.association import (
+    FrameSegments,
+    instance_masks_by_frame,
+    segment_frames,
+    segment_sequence,
+    tracks_from_segments,
+)
 from seqshape.amodal.fallback import mask_instance
 from seqshape.amodal.masks import ORDERS, InstanceMask, frame_masks
 from seqshape.amodal.overlay import draw_overlay, write_overlays  # noqa: F401 (re-exported)
@@ -338,21 +344,136 @@ def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,
     return label_log(open_sequence(root, sequence, max_frames), cfg, estimator=estimator)
 
 
-def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict):
-    """``(by_frame clouds, extra mask-only instances)`` of the log (module doc)."""
+@dataclass
+class Prepared:
+    """One log's tracks before estimation (:func:`prepare_tracks`): the
+    :class:`~seqshape.amodal.refine.TrackInput` list, the extracted tracks (gt modes), the 2D
+    instances without LiDAR support (sc-seg's mask fallback: ``{frame: [(mask or None,
+    COCO annotation, ground plane)]}``; None: the mask is the annotation's own segmentation)
+    and the seconds it took."""
+
+    inputs: list
+    tracks: list | None = None
+    unsupported: dict | None = None
+    seconds: float = 0.0
+
+
+def prepare_tracks(log, cfg: LabelConfig, camera: str) -> Prepared:
+    """The part of a log's labelling that needs no estimator, done once per log (per camera
+    in sc-seg): sc-seg segments every frame and associates the segments into tracks
+    (:func:`~seqshape.amodal.association.segment_sequence`), the gt modes crop the
+    ground-truth boxes (:func:`gt_track_inputs`)."""
+    t0 = time.perf_counter()
+    if cfg.mode == "sc-seg":
+        unsupported: dict | None = {} if cfg.mask_fallback else None
+        inputs = segment_sequence(log, instances_path(log, cfg), min_points=cfg.min_points,
+                                  gate=cfg.gate, max_gap=_max_gap(cfg),
+                                  unsupported=unsupported, camera=camera)
+        return Prepared(inputs, None, unsupported, time.perf_counter() - t0)
+    tracks, inputs = gt_track_inputs(log, cfg.classes, cfg.crop)
+    return Prepared(inputs, tracks, None, time.perf_counter() - t0)
+
+
+def instances_path(log, cfg: LabelConfig) -> Path:
+    """sc-seg's COCO instance file of ``log``: ``cfg.instances``, else
+    ``ROOT/instances_2d/<log name>.json``."""
+    if cfg.instances:
+        return Path(cfg.instances)
+    return contained_path(Path(log.root) / "instances_2d", f"{log.name}.json",
+                          what="instance-mask file")
+
+
+def _max_gap(cfg: LabelConfig) -> int:
+    """The gaps sc-seg's tracks fill (only the refinement ``"smooth"`` poses those frames)."""
+    return cfg.max_gap if cfg.refine == "smooth" else 0
+
+
+def prepare_task(job: tuple) -> Prepared:
+    """:func:`prepare_tracks` of ``job`` = ``(log, cfg, camera)`` in a worker process
+    (:func:`start_labels`' ``prepared``); the full-image masks of the unsupported 2D instances
+    are left out (they are their annotations' segmentations: decoded again on return)."""
+    out = prepare_tracks(*job)
+    if out.unsupported:
+        out.unsupported = {f: [(None, ann, plane) for _, ann, plane in rows]
+                           for f, rows in out.unsupported.items()}
+    return out
+
+
+def segment_chunk(job: tuple) -> tuple[list[FrameSegments], float]:
+    """sc-seg's per-frame part (:func:`~seqshape.amodal.association.segment_frames`) of a run
+    of frames, in a worker process of :class:`PreparingSegments` (``job``: log, camera,
+    ``{frame: COCO annotations}``, the frames, ``min_points``); ``(segments, seconds)``."""
+    log, camera, annotations, frames, min_points = job
+    t0 = time.perf_counter()
+    segments = segment_frames(log, camera, annotations, frames, min_points)
+    return segments, time.perf_counter() - t0
+
+
+class PreparingSegments:
+    """sc-seg's :func:`prepare_tracks` of one log and camera with its frames segmented by a
+    pool's workers: the instance file is read here, runs of consecutive frames are segmented
+    as tasks of the pool (:func:`segment_chunk`), and :meth:`get` associates them into tracks
+    here, in frame order (:func:`~seqshape.amodal.association.tracks_from_segments`): the
+    same :class:`Prepared` as :func:`prepare_tracks` (tested), whatever the chunks."""
+
+    def __init__(self, pool, log, cfg: LabelConfig, camera: str):
+        t0 = time.perf_counter()
+        self.log, self.cfg = log, cfg
+        annotations = instance_masks_by_frame(log, camera, instances_path(log, cfg))
+        frames = list(log.frames)
+        size = _chunk_size(len(frames), pool.workers)
+        self.tasks = [pool.submit(segment_chunk, (
+            log, camera, {f: annotations[f] for f in frames[k:k + size]}, frames[k:k + size],
+            cfg.min_points)) for k in range(0, len(frames), size)]
+        self.seconds = time.perf_counter() - t0
+
+    def ready(self) -> bool:
+        return all(t.ready() for t in self.tasks)
+
+    def get(self) -> Prepared:
+        """Wait for the frames and associate them (:func:`prepare_tracks`' result)."""
+        segments, seconds = [], self.seconds
+        for task in self.tasks:
+            part, secs = task.get()
+            segments.extend(part)
+            seconds += secs
+        t0 = time.perf_counter()
+        unsupported: dict | None = {} if self.cfg.mask_fallback else None
+        inputs = tracks_from_segments(self.log, segments, self.cfg.gate, _max_gap(self.cfg),
+                                      unsupported)
+        return Prepared(inputs, None, unsupported, seconds + time.perf_counter() - t0)
+
+
+def submit_prepare(pool, log, cfg: LabelConfig, camera: str):
+    """Start :func:`prepare_tracks` of ``log`` and ``camera`` in ``pool`` (a
+    :class:`seqshape._runner.WorkerPool`): sc-seg's frames in runs across the workers
+    (:class:`PreparingSegments`), the gt modes' crops as one task (:func:`prepare_task`).
+    Returns an object whose ``get()`` gives the :class:`Prepared`."""
+    if cfg.mode == "sc-seg":
+        return PreparingSegments(pool, log, cfg, camera)
+    return pool.submit(prepare_task, (log, cfg, camera))
+
+
+def preparations(log, cfg: LabelConfig, cameras) -> list[str]:
+    """The cameras for which :func:`start_labels` needs a :func:`prepare_tracks` of ``log``
+    (sc-seg: each camera's own 2D masks; the others: the tracks once, by the first)."""
+    return list(cameras) if cfg.mode == "sc-seg" else list(cameras)[:1]
+
+
+def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict,
+              prepared: Prepared | None = None):
+    """``(by_frame clouds, extra mask-only instances)`` of the log (module doc), from its
+    :func:`prepare_tracks` (made here when not given)."""
+    prepared = prepared if prepared is not None else prepare_tracks(log, cfg, camera)
+    inputs, tracks = prepared.inputs, prepared.tracks
     t0 = time.perf_counter()
     extra = None
     if cfg.mode == "sc-seg":
-        inst_path = Path(cfg.instances) if cfg.instances else contained_path(
-            Path(log.root) / "instances_2d", f"{log.name}.json", what="instance-mask file")
-        unsupported: dict | None = {} if cfg.mask_fallback else None
-        inputs = segment_sequence(log, inst_path, min_points=cfg.min_points, gate=cfg.gate,
-                                  max_gap=cfg.max_gap if cfg.refine == "smooth" else 0,
-                                  unsupported=unsupported, camera=camera)
-        extra = mask_only_labels(log, unsupported or {}, camera)
-    else:
-        tracks, inputs = gt_track_inputs(log, cfg.classes, cfg.crop)
-    timings["segment"] = time.perf_counter() - t0
+        unsupported = {f: [(rle_to_mask(ann["segmentation"]) if mask is None else mask, ann,
+                            plane) for mask, ann, plane in rows]
+                       for f, rows in (prepared.unsupported or {}).items()}
+        extra = mask_only_labels(log, unsupported, camera)
+    timings["segment"] = prepared.seconds + time.perf_counter() - t0
     t0 = time.perf_counter()
     if cfg.mode == "gt-accumulation":
         clouds = [gt_accumulation_clouds(t) for t in tracks]
@@ -370,42 +491,61 @@ def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict):
     return clouds_by_frame(inputs, clouds), extra
 
 
-def _render_timed(log, by_frame, cfg, extra, camera, timings) -> LabelResult:
-    t0 = time.perf_counter()
-    result = render_labels(log, by_frame, cfg, extra, camera=camera)
-    timings["masks"] = time.perf_counter() - t0
-    timings["total"] = sum(v for k, v in timings.items() if k != "frames")
-    timings["frames"] = len(log.frames)
-    result.timings = timings
-    return result
+def _render_timed(log, by_frame, cfg, extra, camera, timings, pool=None,
+                  keep_masks: bool = True) -> PendingLabels:
+    return PendingLabels(start_render(log, by_frame, cfg, extra, camera, pool, keep_masks),
+                         timings, len(log.frames))
 
 
 def label_log(log, cfg: LabelConfig, camera: str | None = None,
-              estimator=None) -> LabelResult:
+              estimator=None, pool=None, keep_masks: bool = True) -> LabelResult:
     """Amodal labels of every frame of ``log`` (a DrivingLog) in ``camera`` (default: the log's
     default camera) (module doc); nothing is written. A log without cameras is a
-    :class:`~seqshape.errors.ConfigError`."""
+    :class:`~seqshape.errors.ConfigError`. ``pool`` and ``keep_masks``: :func:`render_labels`
+    (the labels do not depend on the pool)."""
     camera = check_camera(log, camera)
-    if not log.frames:
-        raise DataError(Path(log.root), f"{log.dataset} log {log.name}: no frames found")
-    timings: dict[str, float] = {}
-    by_frame, extra = _complete(log, cfg, camera, estimator, timings)
-    return _render_timed(log, by_frame, cfg, extra, camera, timings)
+    return start_labels(log, cfg, [camera], estimator, pool, keep_masks)[camera].result()
 
 
-def label_log_cameras(log, cfg: LabelConfig, cameras=None, estimator=None
-                      ) -> dict[str, LabelResult]:
+def label_log_cameras(log, cfg: LabelConfig, cameras=None, estimator=None, pool=None,
+                      keep_masks: bool = True) -> dict[str, LabelResult]:
     """:func:`label_log` for several cameras (default: all of the log's); the gt and sc-gt
     modes complete the tracks once and project them into every camera (sc-seg segments each
     camera's own 2D masks)."""
+    pending = start_labels(log, cfg, cameras, estimator, pool, keep_masks)
+    return {c: p.result() for c, p in pending.items()}
+
+
+def start_labels(log, cfg: LabelConfig, cameras=None, estimator=None, pool=None,
+                 keep_masks: bool = True, prepared: dict | None = None
+                 ) -> dict[str, PendingLabels]:
+    """:func:`label_log_cameras` in parts: ``prepared`` ``{camera: Prepared}`` (the cameras
+    of :func:`preparations`, e.g. made by :func:`submit_prepare`'s tasks; made here when
+    None: sc-seg with a pool segments runs of frames in its workers, :class:`PreparingSegments`),
+    then the estimation here (the estimates of a track run in order), then the frames' masks
+    handed to ``pool`` (:func:`start_render`); the :class:`PendingLabels` of each camera gives
+    its :class:`LabelResult` when the pool has rendered every frame. Without a pool everything
+    is done before this returns."""
     cameras = [check_camera(log, c) for c in (cameras or log.camera_names)]
     if not log.frames:
         raise DataError(Path(log.root), f"{log.dataset} log {log.name}: no frames found")
-    if cfg.mode == "sc-seg":
-        return {c: label_log(log, cfg, c, estimator) for c in cameras}
-    timings: dict[str, float] = {}
-    by_frame, _ = _complete(log, cfg, cameras[0], estimator, timings)
-    return {c: _render_timed(log, by_frame, cfg, None, c, dict(timings)) for c in cameras}
+    prepared = dict(prepared or {})
+    if cfg.mode == "sc-seg":  # each camera's own 2D masks
+        if pool is not None:  # every camera's frames to the pool at once
+            jobs = {c: PreparingSegments(pool, log, cfg, c) for c in cameras
+                    if c not in prepared}
+            prepared.update({c: job.get() for c, job in jobs.items()})
+        out = {}
+        for c in cameras:
+            timings: dict[str, float] = {}
+            by_frame, extra = _complete(log, cfg, c, estimator, timings, prepared.get(c))
+            out[c] = _render_timed(log, by_frame, cfg, extra, c, timings, pool, keep_masks)
+        return out
+    timings = {}
+    by_frame, _ = _complete(log, cfg, cameras[0], estimator, timings,
+                            prepared.get(cameras[0]))
+    return {c: _render_timed(log, by_frame, cfg, None, c, dict(timings), pool, keep_masks)
+            for c in cameras}
 
 
 def mask_only_labels(log, unsupported: dict, camera: str | None = None
@@ -425,14 +565,25 @@ def mask_only_labels(log, unsupported: dict, camera: str | None = None
     return out
 
 
-def render_labels(log, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
-                  extra: dict[int, list[tuple[InstanceMask, int]]] | None = None,
-                  camera: str | None = None) -> LabelResult:
-    """Masks and KINS records of every frame of ``log`` in ``camera`` (default: the log's
-    default) from the completed clouds, plus the ``extra`` instances made otherwise
-    (:func:`mask_only_labels`; no ``track_id``)."""
-    camera = check_camera(log, camera)
-    images, anns, masks = [], [], {}
+@dataclass
+class FrameInput:
+    """What :func:`render_frame` needs of one frame, and no more (it goes to a worker process):
+    the completed clouds ``{track_id: (K, 3)}``, ``{track_id: (category_id, label_id)}``, per
+    track with a 2D instance mask (sc-seg) ``(its COCO RLE, the track's own points of the
+    frame (M, 3))``, and the instances made otherwise with their category ids
+    (:func:`mask_only_labels`)."""
+
+    clouds: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict[str, tuple[int, int | None]] = field(default_factory=dict)
+    guides: dict[str, tuple[dict, np.ndarray]] = field(default_factory=dict)
+    extra: list[tuple[InstanceMask, int]] = field(default_factory=list)
+
+
+def frame_inputs(by_frame: dict[int, dict[str, tuple]],
+                 extra: dict[int, list[tuple[InstanceMask, int]]] | None = None
+                 ) -> dict[int, FrameInput]:
+    """The :class:`FrameInput` of every frame with a cloud or an extra instance."""
+    extra = extra or {}
     # track id -> frame -> (RLE of its 2D mask, position of the frame in the track)
     mask_index: dict[str, dict[int, tuple[dict, int]]] = {}
     for items in by_frame.values():
@@ -441,45 +592,185 @@ def render_labels(log, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
                 mask_index[tid] = {f: (r, i) for i, (f, r) in
                                    enumerate(zip(inp.frames, inp.masks, strict=True))
                                    if r is not None}
-    for image_id, frame in enumerate(progress(log.frames, desc=f"masks {log.name} {camera}",
-                                              unit="frame")):
-        cam = log.camera(camera, frame)
-        size = (cam.height, cam.width)
-        images.append(image_entry(image_id, log.name, frame, *size,
-                                  file_name=log.image_file_name(frame, camera)))
+    out = {}
+    for frame in set(by_frame) | set(extra):
         items = by_frame.get(frame, {})
-        more = (extra or {}).get(frame, [])
-        meta = {tid: (inp.category_id, inp.label_id) for tid, (_, inp) in items.items()}
-        meta.update({m.track_id: (cat, None) for m, cat in more})
-        guides, own = _guides(items, frame, mask_index) if cfg.align else (None, None)
-        insts = frame_masks({tid: c for tid, (c, _) in items.items()}, cam, size,
-                            alpha=cfg.alpha, order=cfg.order, extra=[m for m, _ in more],
-                            guides=guides, align=cfg.align_config if cfg.align else None,
-                            guide_points=own)
-        insts = [m for m in insts if np.count_nonzero(m.visible) >= cfg.min_visible_area]
-        masks[frame] = insts
-        oco, ico = occlusion_order([m.order for m in insts], [m.amodal for m in insts])
-        for m, o, i in zip(insts, oco, ico, strict=True):
-            cat, label_id = meta[m.track_id]
-            ann = kins_annotation(len(anns) + 1, image_id, cat, m.amodal, m.visible, o, i,
-                                  track_id=label_id, polygons=cfg.polygons)
-            ann["depth"] = round(float(m.depth), 3)
-            anns.append(ann)
-    return LabelResult(images, anns, masks, camera=camera)
+        guides = {}
+        for tid, (_, inp) in items.items():
+            hit = mask_index.get(tid, {}).get(frame)
+            if hit is not None:
+                guides[tid] = (hit[0], inp.points[hit[1]])
+        out[frame] = FrameInput({tid: c for tid, (c, _) in items.items()},
+                                {tid: (inp.category_id, inp.label_id)
+                                 for tid, (_, inp) in items.items()},
+                                guides, list(extra.get(frame, [])))
+    return out
 
 
-def _guides(items: dict, frame: int, mask_index: dict
-            ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """``({track_id: (h, w) bool}, {track_id: (M, 3)})``: the 2D instance mask of each track of
-    ``frame`` that has one, and that track's own segmented points of the frame."""
-    masks, points = {}, {}
-    for tid, (_, inp) in items.items():
-        hit = mask_index.get(tid, {}).get(frame)
-        if hit is not None:
-            masks[tid] = rle_to_mask(hit[0])
-            points[tid] = inp.points[hit[1]]
-    return masks, points
+def render_frame(log, frame: int, image_id: int, camera: str, cfg: LabelConfig,
+                 inputs: FrameInput | None = None
+                 ) -> tuple[dict, list[dict], list[InstanceMask]]:
+    """One frame's KINS image entry, annotations (``id`` 0: numbered when the log's frames are
+    joined, :class:`PendingLabels`) and instance masks (module doc)."""
+    cam = log.camera(camera, frame)
+    size = (cam.height, cam.width)
+    image = image_entry(image_id, log.name, frame, *size,
+                        file_name=log.image_file_name(frame, camera))
+    inputs = inputs or FrameInput()
+    meta = dict(inputs.meta)
+    meta.update({m.track_id: (cat, None) for m, cat in inputs.extra})
+    guides = own = None
+    if cfg.align:
+        guides = {tid: rle_to_mask(rle) for tid, (rle, _) in inputs.guides.items()}
+        own = {tid: pts for tid, (_, pts) in inputs.guides.items()}
+    insts = frame_masks(inputs.clouds, cam, size, alpha=cfg.alpha, order=cfg.order,
+                        extra=[m for m, _ in inputs.extra], guides=guides,
+                        align=cfg.align_config if cfg.align else None, guide_points=own)
+    insts = [m for m in insts if np.count_nonzero(m.visible) >= cfg.min_visible_area]
+    oco, ico = occlusion_order([m.order for m in insts], [m.amodal for m in insts])
+    anns = []
+    for m, o, i in zip(insts, oco, ico, strict=True):
+        cat, label_id = meta[m.track_id]
+        ann = kins_annotation(0, image_id, cat, m.amodal, m.visible, o, i, track_id=label_id,
+                              polygons=cfg.polygons)
+        ann["depth"] = round(float(m.depth), 3)
+        anns.append(ann)
+    return image, anns, insts
 
+
+def _pack(m: InstanceMask) -> tuple:
+    """An instance mask cut to its amodal box (the visible mask lies inside), without its
+    projected points: what a worker sends back (:func:`_unpack` restores the masks)."""
+    y0, y1, x0, x1 = _mask_box(m.amodal)
+    return (m.track_id, m.amodal.shape, (y0, x0), m.amodal[y0:y1, x0:x1].copy(),
+            m.visible[y0:y1, x0:x1].copy(), m.depth, m.order)
+
+
+def _unpack(packed: tuple) -> InstanceMask:
+    tid, shape, (y0, x0), amodal, visible, depth, order = packed
+    full_a, full_v = np.zeros(shape, dtype=bool), np.zeros(shape, dtype=bool)
+    full_a[y0:y0 + amodal.shape[0], x0:x0 + amodal.shape[1]] = amodal
+    full_v[y0:y0 + visible.shape[0], x0:x0 + visible.shape[1]] = visible
+    return InstanceMask(tid, full_a, full_v, depth, order)
+
+
+def _mask_box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)`` (end exclusive) of a mask's pixels (empty box when none)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return 0, 0, 0, 0
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def render_chunk(job: tuple) -> tuple[list[tuple], float]:
+    """:func:`render_frame` of a run of frames, in a worker process of :func:`start_render`
+    (``job``: log, camera, config, ``[(image_id, frame, FrameInput | None)]``, whether the
+    masks go back); ``([(image, annotations, packed masks or None)], seconds)``."""
+    log, camera, cfg, frames, keep_masks = job
+    t0 = time.perf_counter()
+    out = []
+    for image_id, frame, inputs in frames:
+        image, anns, insts = render_frame(log, frame, image_id, camera, cfg, inputs)
+        out.append((image, anns, [_pack(m) for m in insts] if keep_masks else None))
+    return out, time.perf_counter() - t0
+
+
+#: frames per task of :func:`start_render` and :class:`PreparingSegments` in a pool: at
+#: least this many...
+CHUNK_FRAMES = 4
+#: ... and about this many tasks per worker and log (balance against the cost of a task)
+CHUNKS_PER_WORKER = 3
+
+
+def _chunk_size(frames: int, workers: int) -> int:
+    """Frames per task when ``frames`` frames of a log go to ``workers`` workers."""
+    return max(CHUNK_FRAMES, -(-frames // (CHUNKS_PER_WORKER * workers)))
+
+
+class _Done:
+    """A finished task, with the interface of ``multiprocessing.pool.AsyncResult``."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def ready(self) -> bool:
+        return True
+
+    def get(self):
+        return self.value
+
+
+class PendingLabels:
+    """The labels of one log and camera while a pool renders its frames
+    (:func:`start_labels`): :meth:`ready` tells whether every frame is done, :meth:`result`
+    waits for them and joins them into a :class:`LabelResult` (annotation ids numbered in
+    frame order: the same file as one process writes)."""
+
+    def __init__(self, started: tuple, timings: dict, frames: int):
+        self.camera, self.tasks, self.keep_masks = started
+        self.timings = timings
+        self.frames = frames
+
+    def ready(self) -> bool:
+        return all(t.ready() for t in self.tasks)
+
+    def result(self) -> LabelResult:
+        images, anns, masks, secs = [], [], {}, 0.0
+        for task in self.tasks:
+            rows, seconds = task.get()
+            secs += seconds
+            for image, frame_anns, packed in rows:
+                images.append(image)
+                for ann in frame_anns:
+                    ann["id"] = len(anns) + 1
+                    anns.append(ann)
+                if packed is not None:
+                    masks[image["frame"]] = [m if isinstance(m, InstanceMask) else _unpack(m)
+                                             for m in packed]
+        timings = dict(self.timings)
+        timings["masks"] = secs
+        timings["total"] = sum(v for k, v in timings.items() if k != "frames")
+        timings["frames"] = self.frames
+        return LabelResult(images, anns, masks, timings, camera=self.camera)
+
+
+def start_render(log, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
+                 extra: dict[int, list[tuple[InstanceMask, int]]] | None = None,
+                 camera: str | None = None, pool=None, keep_masks: bool = True) -> tuple:
+    """Start :func:`render_labels`: in this process (``pool`` None: done when this returns),
+    or as tasks of ``pool`` (a :class:`seqshape._runner.WorkerPool`), runs of consecutive
+    frames each; ``(camera, tasks, keep_masks)`` for :class:`PendingLabels`."""
+    camera = check_camera(log, camera)
+    inputs = frame_inputs(by_frame, extra)
+    frames = [(i, f, inputs.get(f)) for i, f in enumerate(log.frames)]
+    if pool is None:
+        t0 = time.perf_counter()
+        rows = []
+        for image_id, frame, inp in progress(frames, desc=f"masks {log.name} {camera}",
+                                             unit="frame"):
+            image, anns, insts = render_frame(log, frame, image_id, camera, cfg, inp)
+            rows.append((image, anns, insts if keep_masks else None))
+        return camera, [_Done((rows, time.perf_counter() - t0))], keep_masks
+    size = _chunk_size(len(frames), pool.workers)
+    tasks = [pool.submit(render_chunk, (log, camera, cfg, frames[k:k + size], keep_masks))
+             for k in range(0, len(frames), size)]
+    return camera, tasks, keep_masks
+
+
+def render_labels(log, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
+                  extra: dict[int, list[tuple[InstanceMask, int]]] | None = None,
+                  camera: str | None = None, pool=None, keep_masks: bool = True
+                  ) -> LabelResult:
+    """Masks and KINS records of every frame of ``log`` in ``camera`` (default: the log's
+    default) from the completed clouds, plus the ``extra`` instances made otherwise
+    (:func:`mask_only_labels`; no ``track_id``).
+
+    ``pool``: render runs of frames in its worker processes (:func:`start_render`; the
+    result does not depend on it, except that the masks it sends back carry no projected
+    points); ``keep_masks`` False: ``LabelResult.masks`` stays empty (only overlays need it).
+    """
+    return PendingLabels(start_render(log, by_frame, cfg, extra, camera, pool, keep_masks),
+                         {}, len(log.frames)).result()
 
 def write_labels(path, result: LabelResult) -> None:
     """Write the KINS JSON of a :class:`LabelResult` (categories: KINS's plus bus 9 and

@@ -10,25 +10,33 @@ overlays under ``OVERLAYS/<camera>/``). The labelling options are the fields of
 
 Several logs: ``--sequence A,B,...`` or ``--sequence all`` (every log under the root); ``--out``
 is then a folder of ``<log>.json`` (several cameras: ``<log>/<camera>.json``), and
-``--workers N`` labels the logs in N processes (:func:`seqshape._runner.run_pool`, one log
-each; every file depends only on its log, so the output does not depend on N).
+``--workers N`` (N > 1) runs N worker processes (:class:`seqshape._runner.WorkerPool`): they
+segment (sc-seg: runs of consecutive frames, associated into tracks here) or crop (gt modes)
+the logs, a few logs ahead, and draw the frames' masks (runs of consecutive frames of any
+log), while this process completes the tracks (the estimator runs here only, loaded once,
+while the workers start on the first logs); each log's file is written, atomically, once all
+its frames are drawn. Every file depends only on its log, so the output does not depend on N
+(nor on the number of logs).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections import deque
 from pathlib import Path
 
 import seqshape.scripts.export_tracks as export_tracks
 from seqshape._io import contained_path, safe_stem
-from seqshape._runner import run_pool
+from seqshape._runner import WorkerPool
 from seqshape.amodal.labeler import (
     MODES,
     LabelConfig,
     check_camera,
-    label_log_cameras,
     load_estimator,
+    preparations,
+    start_labels,
+    submit_prepare,
     write_labels,
     write_overlays,
 )
@@ -68,8 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overlays", type=Path, default=None,
                         help="write overlay PNGs here (default: none)")
     parser.add_argument("--workers", type=int, default=1,
-                        help="processes for several logs (--sequence A,B or all), one log "
-                             "each (default: 1)")
+                        help="worker processes: they segment or crop the logs and draw the "
+                             "masks (runs of frames), this one runs the estimator (default: "
+                             "1: all in this process); the files do not depend on it")
     parser.add_argument("--export-tracks", type=Path, default=None, metavar="DIR",
                         help="deprecated, use `seqshape export-tracks`: write the log's tracks "
                              "as a track dataset for fine-tuning, and stop (default: label)")
@@ -104,14 +113,16 @@ def sequences_of(args) -> list[str] | None:
     return list(dict.fromkeys(names))
 
 
-_ESTIMATOR: dict = {}  # the estimator of this process (sc-* modes), loaded once per worker
+_ESTIMATOR: dict = {}  # the estimator of this process (sc-* modes), loaded once
 
 
-def _init_worker(mode: str, threads: int, checkpoint: str | None, backend: str) -> None:
-    """Worker start: torch threads and the estimator, once per process."""
-    _set_threads(mode, threads)
-    if mode != "gt-accumulation":
+def _estimator(mode: str, checkpoint: str | None, backend: str):
+    """This process's estimator (None for gt-accumulation), loaded at its first use."""
+    if mode == "gt-accumulation":
+        return None
+    if "est" not in _ESTIMATOR:
         _ESTIMATOR["est"] = load_estimator(checkpoint, backend)
+    return _ESTIMATOR["est"]
 
 
 def _write_results(args, log, results: dict, out: Path, overlays: Path | None) -> list[str]:
@@ -141,23 +152,51 @@ def _set_threads(mode: str, threads: int) -> None:
         torch.set_num_threads(threads)
 
 
-def _label_one(job: tuple[argparse.Namespace, str | None]) -> list[str]:
-    """Label one log (``job``: the arguments and the log name, None: ``--sequence`` itself);
-    the lines to print. Runs in a worker process of :func:`run_pool`."""
-    args, name = job
+def _open_one(args: argparse.Namespace, name: str | None, pool=None) -> tuple:
+    """Open one log (``name``; None: ``--sequence`` itself) and check its cameras and options;
+    with ``pool``, its tracks are prepared (segmented or cropped) by a worker meanwhile."""
     if name is not None:
         args = argparse.Namespace(**{**vars(args), "sequence": name})
     log = open_args_log(args)
     cameras = cameras_of(args, log)
     values = config_kwargs(args, FIELDS)
     cfg = LabelConfig(**{**values, "instances": values["instances"] or None})
-    results = label_log_cameras(log, cfg, cameras, estimator=_ESTIMATOR.get("est"))
+    tasks = {} if pool is None else {cam: submit_prepare(pool, log, cfg, cam)
+                                     for cam in preparations(log, cfg, cameras)}
+    return args, name, log, cameras, cfg, tasks
+
+
+def _start_one(opened: tuple, pool=None) -> tuple:
+    """Label one log (:func:`_open_one`): its tracks are completed here, its frames drawn
+    here (``pool`` None) or by ``pool``'s workers. Returns what :func:`_finish_one` needs."""
+    args, name, log, cameras, cfg, tasks = opened
+    prepared = {cam: task.get() for cam, task in tasks.items()}
+    pending = start_labels(log, cfg, cameras, _estimator(args.mode, args.checkpoint,
+                                                         args.backend),
+                           pool=pool, keep_masks=args.overlays is not None, prepared=prepared)
+    return args, name, log, pending
+
+
+def _finish_one(started) -> list[str]:
+    """Wait for one log's labels (:func:`_start_one`) and write them (atomically, one file
+    per log and camera); the lines to print."""
+    args, name, log, pending = started
+    results = {cam: p.result() for cam, p in pending.items()}
     if name is None:
         return _write_results(args, log, results, args.out, args.overlays)
     stem = safe_stem(name)  # a log name comes from data (nuScenes: scene.json)
     out = contained_path(args.out, stem if len(results) > 1 else f"{stem}.json")
     overlays = None if args.overlays is None else contained_path(args.overlays, stem)
     return _write_results(args, log, results, out, overlays)
+
+
+def _ready(started) -> bool:
+    return all(p.ready() for p in started[3].values())
+
+
+def _worker_start() -> None:
+    """Start of a drawing worker: nothing to load (unpickling this function has imported the
+    labeller, OpenCV and SciPy: while the parent imports PyTorch and loads the estimator)."""
 
 
 def run(args: argparse.Namespace) -> int:
@@ -172,11 +211,32 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     names = sequences_of(args)
     LabelConfig(**{**config_kwargs(args, FIELDS), "instances": None})  # options checked first
-    _set_threads(args.mode, args.threads)
-    jobs = [(args, None)] if names is None else [(args, n) for n in names]
-    init = (args.mode, args.threads, args.checkpoint, args.backend)
-    for lines in run_pool(_label_one, jobs, args.workers, initializer=_init_worker,
-                          initargs=init, desc="label", unit="log", progress_bar=False):
-        for line in lines:
-            print(line)
+    jobs = [None] if names is None else names
+    if args.workers == 1:
+        _set_threads(args.mode, args.threads)
+        for name in jobs:
+            for line in _finish_one(_start_one(_open_one(args, name))):
+                print(line)
+        return 0
+    # The workers segment or crop the logs (a few logs ahead) and draw the frames (any log's,
+    # in runs of frames); this process completes the tracks (the estimator runs here only)
+    # and writes each log's files once all its frames are drawn, in the order of the logs.
+    # At most `workers` logs wait for their frames (their clouds are held here until then).
+    with WorkerPool(args.workers, initializer=_worker_start) as pool:
+        todo = deque(jobs)
+        opened: deque = deque(_open_one(args, todo.popleft(), pool)
+                              for _ in range(min(args.workers, len(todo))))
+        _set_threads(args.mode, args.threads)
+        started: deque = deque()
+        while opened:
+            current = opened.popleft()
+            if todo:
+                opened.append(_open_one(args, todo.popleft(), pool))
+            started.append(_start_one(current, pool))
+            while started and (_ready(started[0]) or len(started) > args.workers):
+                for line in _finish_one(started.popleft()):
+                    print(line, flush=True)
+        while started:
+            for line in _finish_one(started.popleft()):
+                print(line, flush=True)
     return 0
