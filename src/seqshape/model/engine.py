@@ -73,8 +73,10 @@ BUCKET_FILL, BUCKET_MIN_ROWS = 0.75, 16
 #: :data:`LARGE_PASS_THREADS` threads when ``threads`` is left at None and a core is free
 #: (:func:`spare_cores`; one-track passes too, see :class:`OnnxEngine`); the other passes of
 #: a few tracks run on one thread, the fastest for them. Two threads on cores that other
-#: processes keep busy lose throughput (docs/model.md, "Threads").
-LARGE_PASS_ROWS = 4096
+#: processes keep busy lose throughput (docs/model.md, "Threads"). 1,024 rather than 4,096:
+#: 100 live tracks 2,595-2,684 against 2,347-2,461 updates/s, interleaved runs on a quiet
+#: machine (18:23 UTC, 2026-12-02).
+LARGE_PASS_ROWS = 1024
 LARGE_PASS_THREADS = 2
 #: Seconds for which :meth:`OnnxEngine.spare` trusts its last count of free cores.
 SPARE_CHECK_PERIOD = 0.1
