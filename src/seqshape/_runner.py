@@ -247,10 +247,15 @@ def run_pool(fn: Callable, units: Sequence, workers: int = 1, *,
         bar.close()
 
 
-def _pooled(fn, units, workers, initializer, initargs, bar, step) -> Iterator:
+def _spawn_pool(workers: int, initializer: Callable | None, initargs: tuple):
+    """``workers`` spawned processes, each started by :func:`_init_worker`."""
     ctx = multiprocessing.get_context("spawn")
-    pool = ctx.Pool(workers, initializer=_init_worker,
+    return ctx.Pool(workers, initializer=_init_worker,
                     initargs=(os.getpid(), initializer, initargs))
+
+
+def _pooled(fn, units, workers, initializer, initargs, bar, step) -> Iterator:
+    pool = _spawn_pool(workers, initializer, initargs)
     try:
         indexed = list(enumerate(units))
         for j, result in pool.imap_unordered(_Indexed(fn), indexed, chunksize=1):
@@ -293,9 +298,7 @@ class WorkerPool:
         if workers < 1:
             raise ConfigError(f"workers must be >= 1, got {workers}")
         self.workers = workers
-        ctx = multiprocessing.get_context("spawn")
-        self._pool = ctx.Pool(workers, initializer=_init_worker,
-                              initargs=(os.getpid(), initializer, initargs))
+        self._pool = _spawn_pool(workers, initializer, initargs)
 
     def submit(self, fn: Callable, unit: Any):
         """Run ``fn(unit)`` in a worker (``fn`` and ``unit`` must pickle)."""
