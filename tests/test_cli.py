@@ -19,8 +19,10 @@ from seqshape.data import TrackDataset
 from seqshape.scripts.scenes import degrade_config
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 
-# options added since that release (issue 17: inference backends, labelling workers)
-ADDED = {"label": {"backend": "auto", "workers": 1}, "evaluate": {"backend": "auto"}}
+# options added since that release (issue 17: inference backends, labelling workers;
+# label --resume)
+ADDED = {"label": {"backend": "auto", "workers": 1, "resume": False},
+         "evaluate": {"backend": "auto"}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
 # (33229e9), plus ADDED; paths as strings

@@ -31,9 +31,11 @@ JSON, one file per camera. Category ids of the gt modes come from
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -41,6 +43,7 @@ import numpy as np
 
 from seqshape._io import contained_path
 from seqshape._progress import progress
+from seqshape._version import __version__
 from seqshape.amodal.accumulate import gt_accumulation_clouds
 from seqshape.amodal.align import AlignConfig
 from seqshape.amodal.association import (
@@ -772,7 +775,110 @@ def render_labels(log, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
     return PendingLabels(start_render(log, by_frame, cfg, extra, camera, pool, keep_masks),
                          {}, len(log.frames)).result()
 
-def write_labels(path, result: LabelResult) -> None:
+def write_labels(path, result: LabelResult, settings: dict | None = None) -> None:
     """Write the KINS JSON of a :class:`LabelResult` (categories: KINS's plus bus 9 and
-    trailer 10, :data:`~seqshape.data.categories.KINS_CATEGORIES`)."""
-    write_kins(path, result.images, result.annotations)
+    trailer 10, :data:`~seqshape.data.categories.KINS_CATEGORIES`), atomically.
+
+    ``settings`` (:func:`label_settings`): recorded in the file, as its ``info`` block
+    (``{"description": LABEL_INFO, "settings": ...}``, first key), for ``seqshape label
+    --resume``; None: no ``info`` block (the file as before settings were recorded).
+    """
+    info = None if settings is None else {"description": LABEL_INFO, "settings": settings}
+    write_kins(path, result.images, result.annotations, info=info)
+
+
+#: ``info.description`` of a label file written with its settings (:func:`write_labels`).
+LABEL_INFO = "amodal mask labels written by seqshape label"
+#: LabelConfig fields that :func:`label_settings` records otherwise: the weights by their
+#: digest, the backend by the arithmetic it computes in.
+_NOT_RECORDED = ("checkpoint", "backend")
+
+
+def inference_arithmetic(backend: str) -> str:
+    """What of the estimator's backend can change labels beyond float noise: ``"int8"`` for
+    ``onnx-int8`` (shape points move by up to a few cm), ``"float32"`` for the others
+    (``auto``, ``torch``, ``onnx``, ``torch-lean``: the same float32 network, shape points
+    within 2 mm of each other, :data:`seqshape.model.engine.TOLERANCE`)."""
+    return "int8" if backend == "onnx-int8" else "float32"
+
+
+def weights_digest(checkpoint: str | None) -> str:
+    """``"sha256:<hex>"`` of the weights file that :func:`load_estimator` loads for
+    ``checkpoint`` (a path, or a shipped name: "pretrained" / None is the shipped sequential
+    one); :class:`~seqshape.errors.DataError` when there is no such file."""
+    # lazy: the resolver's module imports torch (modes without a network never call this)
+    from seqshape.model.estimator import resolve_weights
+
+    path = resolve_weights("pretrained" if checkpoint is None else checkpoint)
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+    except OSError as exc:
+        raise DataError(path, f"unreadable weights file ({exc.strerror or exc})") from None
+    return f"sha256:{digest.hexdigest()}"
+
+
+def _flat(prefix: str, value) -> dict:
+    """``{"a.b": leaf}`` of nested dicts (nested config dataclasses after ``asdict``)."""
+    if not isinstance(value, dict):
+        return {prefix: value}
+    out: dict = {}
+    for key, item in value.items():
+        out.update(_flat(f"{prefix}.{key}" if prefix else str(key), item))
+    return out
+
+
+def label_settings(cfg: LabelConfig, log, camera: str, *, max_frames: int | None = None,
+                   weights: str | None = None) -> dict:
+    """Everything that decides the label file of ``log`` in ``camera`` (docs/amodal.md,
+    "Resuming"): the seqshape version, the log (dataset, name, ``max_frames``), the camera,
+    every :class:`LabelConfig` field (nested configs as ``crop.margin`` ...), with the
+    checkpoint recorded as ``weights`` (its :func:`weights_digest`, which the caller
+    passes, computed once per run) and the backend as ``inference``
+    (:func:`inference_arithmetic`); both None in ``gt-accumulation`` (no network). Returns
+    a JSON-normalised dict (lists, not tuples), to compare with a file's
+    (:func:`settings_differences`)."""
+    network = cfg.mode != "gt-accumulation"
+    if network and weights is None:
+        raise ConfigError(f"mode {cfg.mode}: the settings need the weights' digest")
+    fields = {k: v for k, v in _flat("", asdict(cfg)).items()
+              if k.split(".")[0] not in _NOT_RECORDED}
+    settings = {"seqshape": __version__, "dataset": log.dataset, "log": log.name,
+                "camera": camera, "max_frames": max_frames,
+                "weights": weights if network else None,
+                "inference": inference_arithmetic(cfg.backend) if network else None,
+                **fields}
+    return json.loads(json.dumps(settings, default=str))
+
+
+def read_label_settings(path) -> dict | None:
+    """The settings recorded in the label file ``path`` (:func:`write_labels`); None when it
+    records none (written by an older seqshape or another tool). A file that is not a JSON
+    object with KINS's ``images``, ``categories`` and ``annotations`` lists (cut short,
+    edited) is a :class:`~seqshape.errors.DataError` naming it. The annotations themselves
+    are not checked (:func:`~seqshape.data.kins.read_kins` does: 30 times as long)."""
+    path = Path(path)
+    hint = "not a complete label file (cut short or edited?); delete it to label its log again"
+    try:
+        doc = json.loads(path.read_bytes())
+    except OSError as exc:
+        raise DataError(path, f"unreadable file ({exc.strerror or exc})") from None
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError
+        raise DataError(path, f"invalid JSON ({type(exc).__name__}: {exc}): {hint}") from None
+    if not isinstance(doc, dict) or not all(
+            isinstance(doc.get(k), list) for k in ("images", "categories", "annotations")):
+        raise DataError(path, f"no KINS images, categories and annotations lists: {hint}")
+    info = doc.get("info")
+    settings = info.get("settings") if isinstance(info, dict) else None
+    return settings if isinstance(settings, dict) else None
+
+
+def settings_differences(recorded: dict, current: dict) -> list[str]:
+    """``"key: A there vs B now"`` for every key whose value differs (or that one side
+    lacks), in ``current``'s order then ``recorded``'s extra keys."""
+    missing = "(not recorded)"
+    keys = list(current) + [k for k in recorded if k not in current]
+    return [f"{k}: {recorded.get(k, missing)!r} there vs {current.get(k, missing)!r} now"
+            for k in keys if recorded.get(k, missing) != current.get(k, missing)]

@@ -305,6 +305,12 @@ def frame_tracks(insts: Sequence[OverlayInstance], anns: Sequence[dict]) -> list
     return [ann.get("track_id") for ann in anns]
 
 
+def overlay_path(out_dir, log_name: str, frame) -> Path:
+    """The overlay PNG of ``frame`` of the log ``log_name`` in ``out_dir``:
+    ``OUT/<log>_FFFFFF.png``, the log name made file-name safe, kept inside ``out_dir``."""
+    return contained_path(Path(out_dir), f"{safe_stem(log_name)}_{int(frame):06d}.png")
+
+
 def write_overlays(log, result, out_dir, frames=None) -> list[Path]:
     """Overlay PNGs ``OUT/<log>_FFFFFF.png`` (:func:`draw_overlay`, with the legend) of a
     :class:`~seqshape.amodal.labeler.LabelResult` in its camera, on the camera image (black
@@ -321,7 +327,6 @@ def write_overlays(log, result, out_dir, frames=None) -> list[Path]:
     anns: dict[int, list[dict]] = {}
     for ann in result.annotations:
         anns.setdefault(ann["image_id"], []).append(ann)
-    stem = safe_stem(log.name)
     paths = []
     for frame in (log.frames if frames is None else frames):
         img_path = log.image_path(frame, camera)
@@ -335,7 +340,7 @@ def write_overlays(log, result, out_dir, frames=None) -> list[Path]:
         ok, buf = cv2.imencode(".png", draw_overlay(img, insts, tracks))
         if not ok:
             raise DataError(out_dir, f"could not encode the overlay of frame {frame}")
-        path = contained_path(out_dir, f"{stem}_{int(frame):06d}.png")
+        path = overlay_path(out_dir, log.name, frame)
         atomic_write_bytes(path, buf.tobytes())
         paths.append(path)
     return paths

@@ -565,14 +565,16 @@ def image_entry(image_id: int, sequence: str, frame: int, height: int, width: in
 
 
 def write_kins(path: str | Path, images: list[dict], annotations: list[dict],
-               categories: list[dict] | None = None) -> None:
-    """Write a KINS-format JSON file atomically (categories default to :data:`KINS_CATEGORIES`).
+               categories: list[dict] | None = None, info: dict | None = None) -> None:
+    """Write a KINS-format JSON file atomically (categories default to :data:`KINS_CATEGORIES`;
+    ``info``, when given, is written as the file's first key, as COCO's ``info`` block).
 
     The content is validated first (as :func:`read_kins` does), so an invalid annotation
     raises ``ValueError`` and nothing is written.
     """
-    doc = {"images": list(images), "categories": list(categories or KINS_CATEGORIES),
-           "annotations": list(annotations)}
+    doc = {} if info is None else {"info": dict(info)}
+    doc.update({"images": list(images), "categories": list(categories or KINS_CATEGORIES),
+                "annotations": list(annotations)})
     try:
         _validate(doc, KINS_KEYS, ("a_segm", "i_segm"))
     except _Invalid as exc:

@@ -17,6 +17,15 @@ log), while this process completes the tracks (the estimator runs here only, loa
 while the workers start on the first logs); each log's file is written, atomically, once all
 its frames are drawn. Every file depends only on its log, so the output does not depend on N
 (nor on the number of logs).
+
+Every label file records the settings that made it (its ``info`` block,
+:func:`seqshape.amodal.labeler.label_settings`). ``--resume`` skips the logs whose files all
+exist with this run's settings (a line each, then a count) and labels the others; a file with
+other settings is a ConfigError naming it and the settings that differ, before anything is
+labelled; a file that is not a complete label file is a DataError naming it. A log's overlays
+are written before its label file, so a label file also means that its overlays are complete
+(with ``--overlays``, a log whose overlays are missing is labelled again). Without
+``--resume`` existing files are overwritten, as before.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 
 import seqshape.scripts.export_tracks as export_tracks
@@ -33,17 +43,22 @@ from seqshape.amodal.labeler import (
     MODES,
     LabelConfig,
     check_camera,
+    label_settings,
     load_estimator,
     preparations,
+    read_label_settings,
+    settings_differences,
     start_labels,
     submit_prepare,
+    weights_digest,
     write_labels,
     write_overlays,
 )
 from seqshape.amodal.masks import ORDERS
+from seqshape.amodal.overlay import overlay_path
 from seqshape.amodal.refine import REFINE_MODES
 from seqshape.data.sequence import log_names
-from seqshape.errors import ConfigError
+from seqshape.errors import ConfigError, DataError
 from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 from seqshape.scripts._log_args import add_log_arguments, open_args_log
 
@@ -79,6 +94,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worker processes: they segment or crop the logs and draw the "
                              "masks (runs of frames), this one runs the estimator (default: "
                              "1: all in this process); the files do not depend on it")
+    parser.add_argument("--resume", action="store_true",
+                        help="skip the logs whose label files exist, written with the same "
+                             "settings (recorded in each file); a file with other settings is "
+                             "an error (default: label every log, overwriting its files)")
     parser.add_argument("--export-tracks", type=Path, default=None, metavar="DIR",
                         help="deprecated, use `seqshape export-tracks`: write the log's tracks "
                              "as a track dataset for fine-tuning, and stop (default: label)")
@@ -125,22 +144,121 @@ def _estimator(mode: str, checkpoint: str | None, backend: str):
     return _ESTIMATOR["est"]
 
 
-def _write_results(args, log, results: dict, out: Path, overlays: Path | None) -> list[str]:
-    """Write one log's label files (and overlays); returns the lines to print."""
-    several = len(results) > 1
+def _targets(args, name: str | None, cameras: list[str]) -> dict[str, tuple]:
+    """``{camera: (label file, overlay folder or None)}`` of one log (``name``; None: the one
+    log of ``--sequence``): one camera writes ``--out`` (several logs: ``OUT/<log>.json``),
+    several write ``<camera>.json`` into it (several logs: ``OUT/<log>/<camera>.json``)."""
+    several = len(cameras) > 1
+    out, overlays = args.out, args.overlays
+    if name is not None:
+        stem = safe_stem(name)  # a log name comes from data (nuScenes: scene.json)
+        out = contained_path(out, stem if several else f"{stem}.json")
+        overlays = None if overlays is None else contained_path(overlays, stem)
+    return {cam: (contained_path(out, f"{safe_stem(cam)}.json") if several else out,
+                  None if overlays is None
+                  else contained_path(overlays, safe_stem(cam)) if several else overlays)
+            for cam in cameras}
+
+
+def _settings(args, log, cfg: LabelConfig, camera: str, weights: str | None) -> dict:
+    return label_settings(cfg, log, camera, max_frames=args.max_frames, weights=weights)
+
+
+def _weights(args) -> str | None:
+    """The digest of the estimator's weights (None: gt-accumulation runs no network)."""
+    return None if args.mode == "gt-accumulation" else weights_digest(args.checkpoint)
+
+
+def _write_results(args, name: str | None, log, cfg: LabelConfig, results: dict,
+                   weights: str | None) -> list[str]:
+    """Write one log's label files (and overlays, before each label file: a label file
+    means that its overlays are complete); returns the lines to print."""
+    targets = _targets(args, name, list(results))
     lines = []
     for cam, result in results.items():
-        path = contained_path(out, f"{safe_stem(cam)}.json") if several else out
-        write_labels(path, result)
+        path, folder = targets[cam]
+        overlays = None if folder is None else write_overlays(log, result, folder)
+        write_labels(path, result, _settings(args, log, cfg, cam, weights))
         t = result.timings
         lines.append(f"{args.mode} {cam}: {len(result.annotations)} instances in "
                      f"{t['frames']} frames, {t['frames'] / max(t['total'], 1e-9):.2f} "
                      f"frames/s -> {path}")
         if overlays is not None:
-            folder = contained_path(overlays, safe_stem(cam)) if several else overlays
-            paths = write_overlays(log, result, folder)
-            lines.append(f"wrote {len(paths)} overlays to {folder}")
+            lines.append(f"wrote {len(overlays)} overlays to {folder}")
     return lines
+
+
+def _overlay_files(log, folder: Path) -> list[Path]:
+    """The overlay PNGs :func:`seqshape.amodal.overlay.write_overlays` writes for ``log``."""
+    return [overlay_path(folder, log.name, f) for f in log.frames]
+
+
+def _to_label(args, opened: tuple, weights: Callable[[], str | None]
+              ) -> tuple[list[str], bool]:
+    """Why the log of ``opened`` (:func:`_open_one`) is to be labelled by a ``--resume`` run
+    (its files missing; empty: every file of it exists with this run's settings), and
+    whether some label file of it exists. ``weights()`` gives the weights' digest.
+
+    Raises:
+        ConfigError: a label file of it holds other settings, or none (every existing file
+            is checked, so the run stops before labelling anything).
+        DataError: a label file of it is not a complete label file.
+    """
+    args, name, log, cameras, cfg, _ = opened
+    missing, started = [], False
+    for cam, (path, folder) in _targets(args, name, cameras).items():
+        if not path.exists():
+            missing.append(f"{path} missing")
+            continue
+        started = True
+        if not path.is_file():
+            raise DataError(path, "not a file, where the label file of this log goes")
+        recorded = read_label_settings(path)
+        if recorded is None:
+            raise ConfigError(f"{path} records no settings (written by an older seqshape or "
+                              f"another tool): --resume cannot tell whether it matches; use "
+                              f"another --out folder, or run without --resume to label "
+                              f"again (overwriting it)")
+        diff = settings_differences(recorded, _settings(args, log, cfg, cam, weights()))
+        if diff:
+            raise ConfigError(f"{path} holds labels made with other settings "
+                              f"({'; '.join(diff)}); use another --out folder, or run "
+                              f"without --resume to label again (overwriting it)")
+        if folder is not None:
+            absent = [p for p in _overlay_files(log, folder) if not p.is_file()]
+            if absent:
+                missing.append(f"{len(absent)} of its overlays missing in {folder}")
+    return missing, started
+
+
+def _resume(args, jobs: list) -> tuple[list, str | None]:
+    """The jobs of a ``--resume`` run still to label, and the weights' digest if it was
+    needed (a file to check: the digest imports PyTorch); prints a line for each log
+    skipped (and for each labelled again: some of its files are missing), then a count.
+    Every log's files are checked before anything is labelled."""
+    known: dict = {}
+
+    def weights() -> str | None:
+        if "digest" not in known:
+            known["digest"] = _weights(args)
+        return known["digest"]
+
+    todo, skipped = [], 0
+    for name in jobs:
+        opened = _open_one(args, name)
+        missing, started = _to_label(args, opened, weights)
+        label = opened[2].name if name is None else name
+        if not missing:
+            skipped += 1
+            files = [str(p) for p, _ in _targets(args, name, opened[3]).values()]
+            print(f"resume: {label} skipped, labelled before with the same settings "
+                  f"({', '.join(files)})")
+            continue
+        todo.append(name)
+        if started:
+            print(f"resume: {label} labelled again ({'; '.join(missing)})")
+    print(f"resume: {skipped} of {len(jobs)} logs skipped, {len(todo)} to label", flush=True)
+    return todo, known.get("digest")
 
 
 def _set_threads(mode: str, threads: int) -> None:
@@ -174,24 +292,20 @@ def _start_one(opened: tuple, pool=None) -> tuple:
     pending = start_labels(log, cfg, cameras, _estimator(args.mode, args.checkpoint,
                                                          args.backend),
                            pool=pool, keep_masks=args.overlays is not None, prepared=prepared)
-    return args, name, log, pending
+    return args, name, log, cfg, pending
 
 
-def _finish_one(started) -> list[str]:
+def _finish_one(started, weights: str | None) -> list[str]:
     """Wait for one log's labels (:func:`_start_one`) and write them (atomically, one file
-    per log and camera); the lines to print."""
-    args, name, log, pending = started
+    per log and camera, with the run's settings: ``weights`` is :func:`_weights`); the
+    lines to print."""
+    args, name, log, cfg, pending = started
     results = {cam: p.result() for cam, p in pending.items()}
-    if name is None:
-        return _write_results(args, log, results, args.out, args.overlays)
-    stem = safe_stem(name)  # a log name comes from data (nuScenes: scene.json)
-    out = contained_path(args.out, stem if len(results) > 1 else f"{stem}.json")
-    overlays = None if args.overlays is None else contained_path(args.overlays, stem)
-    return _write_results(args, log, results, out, overlays)
+    return _write_results(args, name, log, cfg, results, weights)
 
 
 def _ready(started) -> bool:
-    return all(p.ready() for p in started[3].values())
+    return all(p.ready() for p in started[4].values())
 
 
 def _worker_start() -> None:
@@ -212,10 +326,28 @@ def run(args: argparse.Namespace) -> int:
     names = sequences_of(args)
     LabelConfig(**{**config_kwargs(args, FIELDS), "instances": None})  # options checked first
     jobs = [None] if names is None else names
+    weights = None
+    if args.resume:
+        jobs, weights = _resume(args, jobs)
+        if not jobs:
+            return 0
+    try:
+        return _label(args, jobs, weights)
+    except KeyboardInterrupt:
+        if names is not None:
+            print("seqshape label: the logs written so far are complete; rerun with --resume "
+                  "to label only the others", file=sys.stderr)
+        raise
+
+
+def _label(args: argparse.Namespace, jobs: list, weights: str | None) -> int:
+    """Label ``jobs`` (:func:`run`), in this process or with ``args.workers`` workers;
+    ``weights``: the weights' digest when known already."""
     if args.workers == 1:
         _set_threads(args.mode, args.threads)
+        weights = weights or _weights(args)
         for name in jobs:
-            for line in _finish_one(_start_one(_open_one(args, name))):
+            for line in _finish_one(_start_one(_open_one(args, name)), weights):
                 print(line)
         return 0
     # The workers segment or crop the logs (a few logs ahead) and draw the frames (any log's,
@@ -227,6 +359,7 @@ def run(args: argparse.Namespace) -> int:
         opened: deque = deque(_open_one(args, todo.popleft(), pool)
                               for _ in range(min(args.workers, len(todo))))
         _set_threads(args.mode, args.threads)
+        weights = weights or _weights(args)  # after the workers have started
         started: deque = deque()
         while opened:
             current = opened.popleft()
@@ -234,9 +367,9 @@ def run(args: argparse.Namespace) -> int:
                 opened.append(_open_one(args, todo.popleft(), pool))
             started.append(_start_one(current, pool))
             while started and (_ready(started[0]) or len(started) > args.workers):
-                for line in _finish_one(started.popleft()):
+                for line in _finish_one(started.popleft(), weights):
                     print(line, flush=True)
         while started:
-            for line in _finish_one(started.popleft()):
+            for line in _finish_one(started.popleft(), weights):
                 print(line, flush=True)
     return 0
