@@ -141,6 +141,58 @@ def test_glass_shares_follow_the_probabilities():
     assert np.mean(np.isinf(r)) == pytest.approx(0.25, abs=0.03)
 
 
+@pytest.mark.parametrize("label,opening,expect", [
+    (8, 0.6, {6.0: 0.6, 5.0: 0.4, "lost": 0.0}),   # grille: through its openings or the bars
+    (9, 0.6, {6.0: 0.0, 5.0: 0.3, "lost": 0.7}),   # headlamp: lens return or lost, never through
+])
+def test_grille_openings_pass_and_headlamps_lose_rays(label, opening, expect):
+    # the pane of _pane_and_box relabelled: a grille (or headlamp) 1 m in front of the body
+    mesh, labels = _pane_and_box()
+    labels[:2] = label
+    rc = real.RealConfig(grille_pass=(opening, opening), headlamp_loss=0.7)
+    ob = real.vehicle_object(mesh, np.zeros((1, 4)), labels, 0.5, rc, 0,
+                             real.sample_grille(np.random.default_rng(0), rc))
+    scene = real.Scene([ob], *real.ground_plane(50.0, 0.0, 0.0), 0.1)
+    dirs, frame = _forward_rays(4000)
+    r, _, src = real.trace(scene, dirs, frame, rc, np.random.default_rng(2))
+    x = r * dirs[:, 0]
+    for where, share in expect.items():
+        got = np.mean(np.isinf(r)) if where == "lost" else np.mean(np.isclose(x, where))
+        assert got == pytest.approx(share, abs=0.03), where
+    # what came through the openings is marked as seen through the target's front
+    behind = np.isclose(x, 6.0)
+    assert (src[behind] == real.SOURCES.index("target_through_glass")).all()
+
+
+def test_faces_without_openings_or_losses_trace_as_before():
+    # a body-only mesh: no face passes or loses a ray, whatever the grille and headlamp knobs
+    mesh, _ = _pane_and_box()
+    dirs, frame = _forward_rays(500)
+    out = []
+    for rc in (real.RealConfig(), real.RealConfig(grille_pass=(1.0, 1.0), headlamp_loss=1.0)):
+        r, rho, src = real.trace(_scene(mesh, None, rc), dirs, frame, rc,
+                                 np.random.default_rng(3))
+        out.append((r, rho, src))
+    for a, b in zip(*out, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(out[0][0] * dirs[:, 0], 5.0, atol=1e-9)
+
+
+def test_reflectivity_of_older_configs_and_grille_validation():
+    old = real.RealConfig(reflectivity=(0.5, 0.1, 0.03, 0.3, 0.05, 0.9, 0.25, 0.2))
+    assert old.reflectivity == real.RealConfig().reflectivity  # the last two defaulted
+    assert len(old.reflectivity) == 10
+    with pytest.raises(ConfigError, match="10 positive values"):
+        real.RealConfig(reflectivity=(0.5,) * 9)
+    with pytest.raises(ConfigError, match="grille_pass"):
+        real.RealConfig(grille_pass=(0.8, 0.2))
+    with pytest.raises(ConfigError, match="probabilities"):
+        real.RealConfig(headlamp_loss=1.5)
+    rng = np.random.default_rng(0)
+    g = [real.sample_grille(rng, real.RealConfig(grille_pass=(0.2, 0.4))) for _ in range(200)]
+    assert 0.2 <= min(g) and max(g) <= 0.4 and np.std(g) > 0.04
+
+
 def test_incidence_cosine_and_effective_reflectivity_by_hand():
     # a unit cube 6 m ahead turned by 30 deg: the horizontal forward ray meets its -x face at
     # 30 deg from the normal; the backward ray 10 deg down meets the level ground, whose

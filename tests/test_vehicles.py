@@ -16,8 +16,11 @@ from seqshape.vehicles import (
     FACE_LABELS,
     FLEET_KINDS,
     GLASS,
+    GRILLE,
+    HEADLAMP,
     INTERIOR,
     KINDS,
+    LAMP,
     TYRE,
     VEHICLE_CLASSES,
     fleet_library,
@@ -404,6 +407,47 @@ def test_car_glass_is_above_the_beltline_and_in_the_side_windows(kind, seed):
     assert _first_hit_label(v, [xw, 0.0, 10.0], [0, 0, -1]) == GLASS
     assert _first_hit_label(v, [p["length"] - p["hood_len"] * 0.5 + t[0], 0.0, 10.0],
                             [0, 0, -1]) == BODY
+
+
+@pytest.mark.parametrize("kind,seed", [("sedan", 2), ("suv", 4), ("hatchback", 1),
+                                       ("panel_van", 3), ("pickup", 0), ("city_car", 5)])
+def test_car_nose_grille_radiator_and_headlamps(kind, seed):
+    from seqshape.vehicles.surface import ray_intersector
+
+    v = fleet_vehicle(kind, seed)
+    lab, c = v.face_labels, v.mesh.triangles_center
+    # headlamps at the front, tail lamps at the rear, the grille across the nose
+    assert (lab == HEADLAMP).any() and (c[lab == HEADLAMP, 0] > 0).all()
+    assert (lab == LAMP).any() and (c[lab == LAMP, 0] < 0).all()
+    grille = np.flatnonzero(lab == GRILLE)
+    assert len(grille) and (c[grille, 0] > v.mesh.bounds[1, 0] - 0.7).all()
+    # the radiator / engine bay block: the INTERIOR faces ahead of the cowl (the dashboard
+    # behind it is the next interior part)
+    p, t = v.mesh.metadata["params"], v.mesh.metadata["build_to_canonical"]
+    inner = np.flatnonzero(lab == INTERIOR)
+    rad = inner[c[inner, 0] > p["length"] - p["hood_len"] + t[0]]
+    corners = v.mesh.triangles[rad].reshape(-1, 3)
+    lo, hi = corners.min(0), corners.max(0)
+    assert len(rad) == 12 and (hi - lo).min() > 0.07  # one closed box
+    # looking at the middle of the nose from ahead: the grille, then the radiator behind it
+    mid = grille[(c[grille, 2] > lo[2]) & (c[grille, 2] < hi[2])]
+    assert len(mid) > len(grille) // 2  # the block covers most of the grille's height
+    g = mid[np.argmin(np.abs(c[mid, 1]))]
+    isect = ray_intersector(v.mesh)
+    start, back = np.array([c[g, 0] + 5.0, c[g, 1], c[g, 2]]), np.array([-1.0, 0.0, 0.0])
+    first = isect.intersects_first(start[None], back[None])[0]
+    assert lab[first] == GRILLE
+    hits, rays, tris = isect.intersects_location(start[None], back[None], multiple_hits=True)
+    order = np.argsort(-hits[:, 0])
+    behind = [(float(hits[i, 0]), int(lab[tris[i]])) for i in order][1:]
+    assert behind and behind[0][1] == INTERIOR and c[g, 0] - behind[0][0] < 0.75
+    # the radiator is closed inside the body: from its faces every axis ray meets the body
+    for d in np.vstack([np.eye(3), -np.eye(3)]):
+        o = c[rad] + d * 1e-3
+        assert (isect.intersects_first(o, np.tile(d, (len(o), 1))) >= 0).all()
+    # and it is no part of the complete (outside) shape
+    pts = sample_outer_surface(v.mesh, 4000, seed=0)
+    assert not np.all((pts > lo + 1e-4) & (pts < hi - 1e-4), axis=1).any()
 
 
 def test_bus_glass_sits_above_the_floor_and_the_windshield_faces_forward():

@@ -243,12 +243,12 @@ def make_real_track(i: int) -> Track:
     occ, occ_ids = _occluders(rng, v, poses, size, traj.manoeuvre == "parked", traj.ego_x)
     index = {u[0]: k for k, u in enumerate(payload.vehicles)}
     labels = payload.face_labels or [None] * len(payload.vehicles)
-    paint = real.sample_paint(srng, rc)
-    objects = [real.vehicle_object(mesh, poses, labels[v], paint, rc, 0)]
+    paint, grille = real.sample_paint(srng, rc), real.sample_grille(srng, rc)
+    objects = [real.vehicle_object(mesh, poses, labels[v], paint, rc, 0, grille)]
     for (m, p), oid in zip(occ, occ_ids, strict=True):
         p[:, 2] = real.ground_height(n, d, p[:, 0], p[:, 1]) - m.bounds[0, 2]
-        objects.append(real.vehicle_object(m, p, labels[index[oid]], real.sample_paint(srng, rc),
-                                           rc, 2))
+        paint, grille = real.sample_paint(srng, rc), real.sample_grille(srng, rc)
+        objects.append(real.vehicle_object(m, p, labels[index[oid]], paint, rc, 2, grille))
     clutter, extra = _static_clutter(srng, poses, size, occ, traj.ego_x, sx, (n, d), rc)
     objects += extra
     scene = real.Scene(objects, n, d, float(srng.uniform(*rc.ground_reflectivity)))

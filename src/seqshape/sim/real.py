@@ -41,6 +41,7 @@ from seqshape.sim.raycast import MeshRaycaster, mesh_raycaster
 from seqshape.sim.sensors import LidarConfig, get_sensor, ray_window, window_grid
 from seqshape.sim.trajectories import footprint_distance, footprints_overlap
 from seqshape.vehicles.base import BODY as _BODY
+from seqshape.vehicles.base import FACE_LABELS, GRILLE, HEADLAMP
 from seqshape.vehicles.base import GLASS as _GLASS
 
 #: point source codes recorded per frame in the track meta (``sources``)
@@ -49,6 +50,8 @@ _TAG_SCENE, _TAG_JITTER, _TAG_RAYS = 0x5CE4E, 0x717E2, 0x2A75
 _EPS = 1e-3  # m a ray moves past a glass pane before it goes on
 _MAX_PANES = 4  # glass panes one ray may cross
 _N_GLASS = 1.52  # refractive index of soda-lime glass (and of laminated glass's PVB) at 905 nm
+_LEGACY_LABELS = 8  # face labels before GRILLE and HEADLAMP
+_DEFAULT_REFLECTIVITY = (0.5, 0.1, 0.03, 0.3, 0.05, 0.9, 0.25, 0.2, 0.05, 0.3)
 
 
 @dataclass(frozen=True)
@@ -93,9 +96,18 @@ class RealConfig:
     of the beam away (lost) and passes less."""
     glass_return: float = 0.05
     """Probability that a ray hitting glass returns from the pane (else it is lost)."""
-    reflectivity: tuple[float, ...] = (0.5, 0.1, 0.03, 0.3, 0.05, 0.9, 0.25, 0.2)
-    """Reflectivity per face label (body, glass, tyre, rim, trim, lamp, interior, cargo); the
-    body's is replaced by the vehicle's paint."""
+    reflectivity: tuple[float, ...] = _DEFAULT_REFLECTIVITY
+    """Reflectivity per face label (body, glass, tyre, rim, trim, lamp, interior, cargo, grille,
+    headlamp); the body's is replaced by the vehicle's paint. Eight values (a configuration
+    saved before the grille and headlamp labels) get this default's last two."""
+    grille_pass: tuple[float, float] = (0.2, 0.8)
+    """Share of the rays hitting a car's front grille that go through its openings (on to the
+    radiator behind it, or deeper), per vehicle uniform in this range: from near-closed
+    fronts (many electric cars) to open grilles; the others return from the bars."""
+    headlamp_loss: float = 0.7
+    """Probability that a ray hitting a headlamp is lost: the mirror-like reflector behind the
+    clear lens sends the beam away, unlike a tail lamp's retro-reflector; else it returns from
+    the lens."""
     dark_paint_share: float = 0.35
     """Share of vehicles with dark paint (reflectivity 0.03-0.08; others 0.2-0.8)."""
     detection_sharpness: float = 4.0
@@ -126,8 +138,11 @@ class RealConfig:
         if isinstance(self.crop, dict):
             object.__setattr__(self, "crop", CropConfig(**self.crop))
         for name in ("sensors", "sensor_weights", "height_range", "reflectivity",
-                     "ground_reflectivity"):
+                     "ground_reflectivity", "grille_pass"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
+        if len(self.reflectivity) == _LEGACY_LABELS:
+            object.__setattr__(self, "reflectivity",
+                               self.reflectivity + _DEFAULT_REFLECTIVITY[_LEGACY_LABELS:])
         if not self.sensors or len(self.sensors) != len(self.sensor_weights):
             raise ConfigError("real: sensors and sensor_weights need the same non-zero length")
         if min(self.sensor_weights) < 0 or sum(self.sensor_weights) <= 0:
@@ -140,12 +155,15 @@ class RealConfig:
         if not 0 < lo <= hi:
             raise ConfigError("real: need 0 < height_range[0] <= height_range[1]")
         probs = (self.glass_pass, self.glass_return, self.dark_paint_share, self.base_dropout,
-                 self.mixed_prob)
+                 self.mixed_prob, self.headlamp_loss, *self.grille_pass)
         if min(probs) < 0 or max(probs) > 1 or self.glass_pass + self.glass_return > 1:
             raise ConfigError("real: probabilities must lie in [0, 1] and "
                               "glass_pass + glass_return <= 1")
-        if len(self.reflectivity) != 8 or min(self.reflectivity) <= 0:
-            raise ConfigError("real: reflectivity needs 8 positive values (one per face label)")
+        if len(self.reflectivity) != len(FACE_LABELS) or min(self.reflectivity) <= 0:
+            raise ConfigError(f"real: reflectivity needs {len(FACE_LABELS)} positive values "
+                              f"(one per face label: {', '.join(FACE_LABELS.values())})")
+        if len(self.grille_pass) != 2 or self.grille_pass[0] > self.grille_pass[1]:
+            raise ConfigError("real: grille_pass needs two values, low <= high")
         if min(self.tilt_deg, self.edge_gap, self.max_slope, self.context,
                self.detection_sharpness, self.incidence_exponent) < 0 or self.max_clutter < 0:
             raise ConfigError("real: tilt, edge_gap, slopes, context, sharpness, "
@@ -161,13 +179,17 @@ class RealConfig:
 @dataclass
 class SceneObject:
     """A mesh in the scene: its raycaster, per-frame poses ``(T, 4)`` (None: static, already
-    in the sensor frame), per-face reflectivity ``(F,)``, glass mask ``(F,)`` and source code."""
+    in the sensor frame), per-face reflectivity ``(F,)``, glass mask ``(F,)`` and source code;
+    for the faces that are not glass, the probability ``(F,)`` that a ray goes through
+    (``opening``: a grille) or is lost (``loss``: a headlamp); None: 0 everywhere."""
 
     rt: MeshRaycaster
     poses: np.ndarray | None
     rho: np.ndarray
     glass: np.ndarray
     source: int
+    opening: np.ndarray | None = None
+    loss: np.ndarray | None = None
 
 
 @dataclass
@@ -192,8 +214,11 @@ def ground_height(n: np.ndarray, d: float, x, y):
     return -(n[0] * np.asarray(x) + n[1] * np.asarray(y) + d) / n[2]
 
 
-def vehicle_object(mesh, poses, labels, paint: float, cfg: RealConfig, source: int):
-    """A vehicle as a :class:`SceneObject` (``labels`` None: every face is body)."""
+def vehicle_object(mesh, poses, labels, paint: float, cfg: RealConfig, source: int,
+                   grille: float | None = None):
+    """A vehicle as a :class:`SceneObject` (``labels`` None: every face is body); ``grille``
+    is the share of grille hits that go through (:func:`sample_grille`; None: the middle of
+    ``cfg.grille_pass``)."""
     n_faces = len(mesh.faces)
     lab = (np.zeros(n_faces, np.int64) if labels is None
            else np.asarray(labels, dtype=np.int64).reshape(-1))
@@ -202,8 +227,17 @@ def vehicle_object(mesh, poses, labels, paint: float, cfg: RealConfig, source: i
     table = np.asarray(cfg.reflectivity, dtype=np.float64).copy()
     table[_BODY] = paint
     lab = np.clip(lab, 0, len(table) - 1)
+    if grille is None:
+        grille = float(np.mean(cfg.grille_pass))
     return SceneObject(mesh_raycaster(mesh), np.asarray(poses, dtype=np.float64).reshape(-1, 4),
-                       table[lab], lab == _GLASS, source)
+                       table[lab], lab == _GLASS, source,
+                       opening=np.where(lab == GRILLE, grille, 0.0),
+                       loss=np.where(lab == HEADLAMP, cfg.headlamp_loss, 0.0))
+
+
+def sample_grille(rng: np.random.Generator, cfg: RealConfig) -> float:
+    """A vehicle's grille openness: uniform in ``cfg.grille_pass``."""
+    return float(rng.uniform(*cfg.grille_pass))
 
 
 def sample_paint(rng: np.random.Generator, cfg: RealConfig) -> float:
@@ -430,6 +464,7 @@ def trace(scene: Scene, dirs: np.ndarray, frame: np.ndarray, cfg: RealConfig,
         t, obj, face = cast_scene(scene, origins[active], dirs[active], frame[active],
                                   offset[active] if it else None)
         glass = np.zeros(len(active), bool)
+        opening, loss = np.zeros(len(active)), np.zeros(len(active))
         rho = np.full(len(active), scene.ground_rho)
         src = np.full(len(active), 3, np.int64)
         for j, ob in enumerate(scene.objects):
@@ -437,8 +472,15 @@ def trace(scene: Scene, dirs: np.ndarray, frame: np.ndarray, cfg: RealConfig,
             glass[on] = ob.glass[face[on]]
             rho[on] = rho_tab[j][face[on]]
             src[on] = ob.source
+            if ob.opening is not None:
+                opening[on] = ob.opening[face[on]]
+            if ob.loss is not None:
+                loss[on] = ob.loss[face[on]]
         src[obj < 0] = -1
-        p_pass = np.full(len(active), cfg.glass_pass)
+        # glass: through, back from the pane or lost (glass_pass, glass_return); other faces:
+        # through their openings (a grille), lost (a headlamp) or back (everything else)
+        p_pass = np.where(glass, cfg.glass_pass, opening)
+        p_back = np.where(glass, cfg.glass_return, 1.0 - opening - loss)
         if cfg.incidence_exponent > 0 or cfg.glass_fresnel:
             cos = incidence_cosine(scene, dirs[active], frame[active], obj, face)
             if cfg.incidence_exponent > 0:
@@ -446,8 +488,8 @@ def trace(scene: Scene, dirs: np.ndarray, frame: np.ndarray, cfg: RealConfig,
             if cfg.glass_fresnel:
                 p_pass[glass] *= pane_transmission(cos[glass]) / pane_transmission(1.0)
         u = rng.random(len(active))
-        go_on = glass & (u < p_pass) & (it < _MAX_PANES)
-        lost = glass & ~go_on & (u >= p_pass + cfg.glass_return)
+        go_on = (u < p_pass) & (it < _MAX_PANES)
+        lost = ~go_on & (u >= p_pass + p_back)
         done = ~go_on & ~lost & (obj >= 0) & (obj <= n_obj)
         a = active[done]
         rng_out[a] = offset[a] + t[done]

@@ -23,14 +23,18 @@ GLASS = 1      #: windows (windshield, side and rear glass, glass roofs)
 TYRE = 2       #: tyre rubber
 RIM = 3        #: wheel rims / hub caps (metal)
 TRIM = 4       #: unpainted dark plastic: lower bumpers, cladding, mirrors' arms, roof rails,
-#: grilles, chassis, frame rails, fuel tanks
-LAMP = 5       #: head / tail lamps (retro-reflective)
-INTERIOR = 6   #: seats and dashboard inside the cabin (closed, only visible through glass)
+#: chassis, frame rails, fuel tanks
+LAMP = 5       #: tail lamps and reflex reflectors (retro-reflective)
+INTERIOR = 6   #: seats and dashboard inside the cabin, the radiator behind a car's grille
+#: (closed, only visible through glass or the grille's openings)
 CARGO = 7      #: load platforms and trailer decks
+GRILLE = 8     #: a car's open front grille and air intakes (dark bars over openings)
+HEADLAMP = 9   #: headlamps: a clear lens over a mirror-like reflector (most rays are lost)
 
 #: code -> name of every face label.
 FACE_LABELS = {BODY: "body", GLASS: "glass", TYRE: "tyre", RIM: "rim", TRIM: "trim",
-               LAMP: "lamp", INTERIOR: "interior", CARGO: "cargo"}
+               LAMP: "lamp", INTERIOR: "interior", CARGO: "cargo", GRILLE: "grille",
+               HEADLAMP: "headlamp"}
 
 
 @dataclass

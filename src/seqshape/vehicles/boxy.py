@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from seqshape.vehicles.base import BODY, GLASS, LAMP, RIM, TRIM, TYRE
+from seqshape.vehicles.base import BODY, GLASS, HEADLAMP, LAMP, RIM, TRIM, TYRE
 from seqshape.vehicles.parts import Part, end_closed_loft, lathe, mirror_ring, segment_half_index
 
 GAP = 0.06
@@ -140,7 +140,7 @@ def build_box(b: BoxBody) -> Part:
             lo, hi = (LEVEL_IDX[i] for i in glass)
             out[(h[None] >= lo) & (h[None] < hi) & (j >= 1)] = GLASS
         if b.front_lamps if which == "front" else b.rear_lamps:
-            out[(h[None] == 5) & (j >= 1) & (j <= 2)] = LAMP
+            out[(h[None] == 5) & (j >= 1) & (j <= 2)] = HEADLAMP if which == "front" else LAMP
         return out
 
     zr, zfr = rings[0, :, 2], rings[-1, :, 2]

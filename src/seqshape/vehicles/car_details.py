@@ -93,6 +93,26 @@ def _spoiler(p: CarParams, k: dict, info, x) -> list[Part]:
     return [wing, *struts]
 
 
+def _radiator(p: CarParams, k: dict, info, x) -> Part:
+    """The radiator behind the grille: one dark block between the front wheel wells from 5 cm
+    behind the last full-width station back to 8 cm short of the front wheel arch (at least
+    8 cm deep, at most 0.8 m, and 5 cm short of the cowl), up to 3 cm under the hood, inside
+    the closed body (reached only through the grille's openings; label INTERIOR, so it is no
+    part of the complete outside shape)."""
+    L = p.length
+    s0 = k["front"] + 0.05
+    arch = L - max(p.wheel_x) - p.wheel_radius - 0.08
+    s1 = max(min(k["cowl"] - 0.05, k["front"] + 0.8, arch), s0 + 0.08)
+    span = (x >= L - s1 - 0.05) & (x <= L - s0 + 0.05)
+    if not span.any():
+        span = np.abs(x - (L - s0)) == np.abs(x - (L - s0)).min()
+    zb, zt, hw, zf = (np.asarray(info[key])[span] for key in ("zb", "zt", "hw", "zf"))
+    top = float(np.minimum(zb, zt).min()) - 0.03  # the grille's top: the beltline at the nose
+    bottom = min(float(zf.max()) + 0.12, top - 0.1)
+    half = max(float(hw.min()) - p.wheel_width - 0.12, 0.2)  # between the wheel wells
+    return box_part([L - s1, -half, bottom], [L - s0, half, top], INTERIOR)
+
+
 def _interior(p: CarParams, k: dict, info, x) -> list[Part]:
     """Dashboard, seats and the load floor inside the cabin (seen only through the glass).
 
@@ -264,6 +284,7 @@ def build_car(p: CarParams) -> tuple[list[Part], dict]:
         parts += _rails(p, k, info, x)
     parts += _spoiler(p, k, info, x)
     parts += _interior(p, k, info, x)
+    parts.append(_radiator(p, k, info, x))
     if p.rear_style == "cab":
         parts.append(_bed(p, k, [w for w in p.wheel_x if w < x0]))
     return parts, k

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from seqshape.vehicles.base import BODY, GLASS, LAMP, TRIM
+from seqshape.vehicles.base import BODY, GLASS, GRILLE, HEADLAMP, LAMP, TRIM
 from seqshape.vehicles.parts import mirror_ring, segment_half_index
 
 _GAP = 0.05          # m, tyre to arch clearance
@@ -307,8 +307,15 @@ def _cap_labels(p: CarParams, which: str, rings: np.ndarray) -> np.ndarray:
     j = np.arange(steps)[:, None]
     lab = np.full((steps, kk), BODY, np.uint8)
     lab[np.broadcast_to(h <= 3, lab.shape)] = TRIM          # lower bumper / valance
-    lamp = (h >= 6) & (h <= 7) & (j >= 1) & (j <= 2)
-    lab[lamp] = LAMP
+    lamp_band = (h >= 6) & (h <= 7)
+    lamp = lamp_band & (j >= 1) & (j <= 2)
+    if which == "front":
+        # the open grille between the headlamps and the lower intake under the bumper bar
+        # (h 5, painted) across the middle of the nose; the radiator sits behind them
+        lab[((h == 4) | lamp_band) & (j >= 3)] = GRILLE
+        lab[lamp] = HEADLAMP
+    else:
+        lab[lamp] = LAMP
     if which == "rear" and p.rear_glass:
         lab[(h >= _I_G0) & (h < _I_GT) & (j >= 2)] = GLASS
     return lab

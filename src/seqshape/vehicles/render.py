@@ -19,7 +19,8 @@ from seqshape.vehicles.fleet import fleet_vehicle
 #: RGB colour of each face label in the renders.
 LABEL_COLOURS = {0: (0.80, 0.25, 0.20), 1: (0.35, 0.65, 0.95), 2: (0.12, 0.12, 0.12),
                  3: (0.70, 0.70, 0.72), 4: (0.30, 0.30, 0.32), 5: (1.00, 0.85, 0.30),
-                 6: (0.55, 0.45, 0.35), 7: (0.60, 0.50, 0.30)}
+                 6: (0.55, 0.45, 0.35), 7: (0.60, 0.50, 0.30), 8: (0.18, 0.18, 0.22),
+                 9: (0.92, 0.95, 1.00)}
 
 # view name -> (azimuth, elevation) in degrees: the camera's direction from the vehicle
 VIEWS = {"side": (90.0, 0.0), "top": (0.0, 90.0), "front": (0.0, 0.0), "rear": (180.0, 0.0),
@@ -49,10 +50,10 @@ def draw_view(ax, mesh, labels, view: str = "3/4", offset=(0.0, 0.0)) -> None:
     facing = (n[:, 2] > 0) & (lab != INTERIOR)  # glass is drawn opaque: hide what is behind it
     order = np.argsort(tri[:, :, 2].mean(axis=1))
     order = order[facing[order]]
-    base = np.array([LABEL_COLOURS.get(int(c), (0.5, 0.5, 0.5)) for c in range(8)])
+    base = np.array([LABEL_COLOURS.get(int(c), (0.5, 0.5, 0.5)) for c in range(len(FACE_LABELS))])
     light = np.array([0.35, 0.55, 0.76])
     shade = 0.45 + 0.55 * np.clip(n @ light, 0.0, 1.0)
-    col = base[lab.clip(0, 7)] * shade[:, None]
+    col = base[lab.clip(0, len(base) - 1)] * shade[:, None]
     polys = tri[order][:, :, :2] + np.asarray(offset)
     ax.add_collection(PolyCollection(polys, facecolors=col[order], edgecolors="none",
                                      antialiased=False))
