@@ -5,7 +5,9 @@ sequential model, the per-frame baseline and the classical box fit over them, an
 tables the real-data issues are judged by: centre error (median and mean, and its signed radial
 part: positive = too far from the sensor), yaw error with and without 180-degree flips, the
 flip rate, length and width errors of the estimated extents, the CD against the accumulated
-reference and its one-way reference->estimate half; cars and larger vehicles separately, and
+reference and its one-way reference->estimate half, and the share of each frame's points left
+outside the box on the sensor's side and beyond it, for the estimate and for the annotation
+(a check that needs no annotation: a box too far from the sensor leaves points out in front); cars and larger vehicles separately, and
 the centre error by points per frame. With ``--finetune-steps N`` it also fine-tunes the
 sequential model on the logs' own references (``seqshape train --init pretrained``, stage 3
 only) and prints the same tables after, on held-out vehicles (``--split-by track``) and on all.
@@ -79,10 +81,13 @@ def tables(metrics: dict, title: str) -> None:
                          _f(s["rot_deg_median"]), _f(s["rot_deg_without_flips_median"]),
                          _f(s["flip_pct"]), _f(s["length_abs_cm_median"]),
                          _f(s["width_abs_cm_median"]), _f(s.get("cd_cm_mean")),
-                         _f(s.get("ref_to_est_cm_mean"))])
+                         _f(s.get("ref_to_est_cm_mean")),
+                         f'{_f(s.get("est_near_out_pct_mean"))} / {_f(s.get("est_far_out_pct_mean"))}',
+                         f'{_f(s.get("ref_near_out_pct_mean"))} / {_f(s.get("ref_far_out_pct_mean"))}'])
     print_table(["group", "method", "frames", "centre med", "centre mean", "radial med",
                  "yaw med", "yaw w/o flips med", "flips %", "|length| med", "|width| med",
-                 "CD vs ref mean", "ref->est mean"], rows)
+                 "CD vs ref mean", "ref->est mean", "points out near / far % (estimate)",
+                 "(annotation)"], rows)
     print("\ncentre error (cm, median) by points per frame\n")
     pts = b["points"]
     keys = [k for k in pts if any(pts[k].get(m) for m in METHODS)]

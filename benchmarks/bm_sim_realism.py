@@ -12,6 +12,10 @@ box normalised by its size, for cars with ``--min-points`` to ``--max-points`` p
   radial bias);
 * ``face gap``: for frames with a face seen head-on (|view component| >= 0.5 along the box
   axis), the distance (m) from that face to the 98th percentile of the points along the axis;
+* ``beyond far %``: share of a frame's points outside the box's footprint on the side away
+  from the sensor (the crop reaches past the box): 0 for an exact box around the whole car;
+  where it is not, the box sits nearer the sensor than the car's own points (a loose or
+  shifted annotation), which a network trained on exact boxes reads as a radial error;
 * a table of the points' share by height band and radial position (near face ... far face);
 * the view-angle histogram of each folder's frames (``seqshape.sim.trajectories.view_angle``:
   0 deg the sensor sees the car's nose, 90 a side, 180 its tail).
@@ -68,7 +72,9 @@ def frame_layout(points: np.ndarray, pose: np.ndarray, size: np.ndarray) -> dict
         if abs(view[a]) >= 0.5:
             proj = q[:, a] * np.sign(view[a])
             gaps.append(half[a] - np.quantile(proj, 0.98))
+    outside = (np.abs(q[:, 0]) > half[0]) | (np.abs(q[:, 1]) > half[1])
     return {"far": float(np.mean(radial > 0)), "top": float(np.mean(z > 0.7)),
+            "beyond": float(np.mean(outside & (radial > 0))),
             "low": float(np.mean(z < 0.3)),
             "offset": float(q[:, :2].mean(0) @ view),
             "gaps": gaps, "radial": radial, "z": z, "range": dist}
@@ -97,7 +103,8 @@ def layout(folders: list[Path], min_points: int, max_points: int, max_tracks: in
             if not views[0] <= angles[-1] <= views[1]:
                 continue
             f = frame_layout(pts, tr.poses[t], tr.size)
-            rows.append((f["far"], f["top"], f["low"], f["offset"], f["range"], len(pts)))
+            rows.append((f["far"], f["top"], f["low"], f["offset"], f["range"], len(pts),
+                         f["beyond"]))
             gaps += f["gaps"]
             radial.append(f["radial"])
             z.append(f["z"])
@@ -111,6 +118,7 @@ def layout(folders: list[Path], min_points: int, max_points: int, max_tracks: in
     return {"frames": len(a), "far": np.median(a[:, 0]), "top": np.median(a[:, 1]),
             "low": np.median(a[:, 2]), "offset": np.median(a[:, 3]), "range": np.median(a[:, 4]),
             "points": np.median(a[:, 5]), "gap": np.median(gaps) if gaps else float("nan"),
+            "beyond": np.mean(a[:, 6]), "beyond_any": np.mean(a[:, 6] > 0.02),
             "hist": 100 * hist / hist.sum(), "views": views_pct,
             "view_frames": len(angles)}
 
@@ -183,10 +191,12 @@ def main() -> None:
     print(f"\ncar frames with {args.min_points}-{args.max_points} points and views "
           f"{views[0]:g}-{views[1]:g} deg (medians over frames)\n")
     print_table(["folder", "frames", "range m", "points", "far half %", "top %", "low %",
-                 "mean offset m", "face gap m"],
+                 "mean offset m", "face gap m", "beyond far % (mean)",
+                 "frames with > 2 % beyond"],
                 [[lab, r["frames"], f"{r['range']:.1f}", int(r["points"]), f"{100 * r['far']:.0f}",
                   f"{100 * r['top']:.0f}", f"{100 * r['low']:.0f}", f"{r['offset']:.2f}",
-                  f"{r['gap']:.2f}"] if r["frames"] else [lab, 0, *["-"] * 7]
+                  f"{r['gap']:.2f}", f"{100 * r['beyond']:.1f}",
+                  f"{100 * r['beyond_any']:.0f} %"] if r["frames"] else [lab, 0, *["-"] * 9]
                  for lab, r in res.items()])
     bands = [f"{lo:+.2f}..{hi:+.2f}" for lo, hi in zip(R_BANDS[:-1], R_BANDS[1:], strict=True)]
     for lab, r in res.items():

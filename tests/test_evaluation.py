@@ -509,3 +509,35 @@ def test_track_hints_give_class_and_ego_poses_never_the_size():
     np.testing.assert_array_equal(h["ego_poses"][1], np.eye(4) * 2)  # the track's own frame 1
     assert track_hints(est, [bare], [0]) == {"classes": ["car"], "ego_poses": None}
     assert track_hints(OracleEstimator([]), [real], [0]) == {}  # other estimators: nothing
+
+
+def test_outside_shares_by_hand():
+    from seqshape.evaluation.runner import footprint, outside_shares
+
+    # a 4 x 2 m box at (10, 0) facing +x, the sensor at the origin: its near face is x = 8
+    pose = np.array([10.0, 0.0, 0.0, 0.0])
+    box = (np.array([-2.0, -1.0]), np.array([2.0, 1.0]))
+    pts = np.array([[7.5, 0.0, 0.0],     # in front of the near face: out, near
+                    [9.0, 0.5, 0.0],     # inside
+                    [12.5, 0.0, 0.0],    # behind the far face: out, far
+                    [11.0, 1.5, 0.0],    # beside it, beyond the centre: out, far
+                    [9.5, -1.2, 0.3]])   # beside it, on the sensor's side: out, near
+    assert outside_shares(pts, pose, box) == pytest.approx((0.4, 0.4))
+    # the same scene turned by 90 degrees about the sensor (box yaw too): same shares
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    turned = np.array([0.0, 10.0, 0.0, np.pi / 2])
+    assert outside_shares(pts @ rot.T, turned, box) == pytest.approx((0.4, 0.4))
+    # a box moved 1.5 m away from the sensor leaves the near points out, nothing behind
+    far = np.array([11.5, 0.0, 0.0, 0.0])
+    assert outside_shares(pts[:3], far, box) == pytest.approx((2 / 3, 0.0))
+    assert np.isnan(outside_shares(np.zeros((0, 3)), pose, box)).all()
+    assert np.isnan(outside_shares(pts, pose, None)).all()
+
+    # footprint: the box fit's size, or the 1-99 % extents of the estimated cloud
+    cloud = np.array([[x, y, 0.0] for x in np.linspace(8, 12, 41) for y in np.linspace(-1, 1, 21)])
+    est = type("Est", (), {"pose": pose, "complete": cloud})()
+    lo, hi = footprint(est)
+    np.testing.assert_allclose(np.concatenate([lo, hi]), [-2, -1, 2, 1], atol=1e-9)  # end rows > 1 %
+
+    fit = type("Fit", (), {"pose": pose, "size": np.array([4.0, 2.0, 1.5])})()
+    np.testing.assert_allclose(np.concatenate(footprint(fit)), [-2, -1, 2, 1])

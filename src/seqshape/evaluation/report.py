@@ -89,7 +89,11 @@ POSE_EXTENT_METRICS = {
 BREAKDOWN_STATS = {"centre_cm": ("trans_m", 100.0, False), **POSE_EXTENT_METRICS,
                    "rot_deg": ("rot_rad", 180.0 / math.pi, False),
                    "cd_cm": ("cd_m", 100.0, False),
-                   "ref_to_est_cm": ("ref_to_est_m", 100.0, False)}
+                   "ref_to_est_cm": ("ref_to_est_m", 100.0, False),
+                   "est_near_out_pct": ("est_near_out", 100.0, False),
+                   "est_far_out_pct": ("est_far_out", 100.0, False),
+                   "ref_near_out_pct": ("ref_near_out", 100.0, False),
+                   "ref_far_out_pct": ("ref_far_out", 100.0, False)}
 LARGER = ("van", "truck", "bus", "trailer")
 #: Distance bins (m, lower edges; the last is open) and points-per-frame bins (lower edges).
 DISTANCE_BINS = (0.0, 10.0, 20.0, 30.0, 50.0)

@@ -29,7 +29,14 @@ What is computed, per method and per scored frame ``t`` of a track:
 * ``rot_axis_rad``: the rotation error ignoring the direction of travel,
   ``min(rot, pi - rot)`` in ``[0, pi/2]`` (a box flipped by 180 degrees scores 0);
 * ``length_err_m``, ``width_err_m``: signed errors (estimate - truth) of the estimate's extents
-  against the true box size (:func:`estimate_extents`).
+  against the true box size (:func:`estimate_extents`);
+* ``est_near_out``, ``est_far_out``: the share of frame t's points outside the estimate's
+  bird's-eye footprint (:func:`footprint`) on the side facing the sensor / the far side
+  (:func:`outside_shares`); ``ref_near_out``, ``ref_far_out``: the same for the true box. These
+  need no reference to be right: a box placed too far from the sensor leaves points out in
+  front of it, one too near leaves them out behind it. On synthetic tracks the true box holds
+  every point of the vehicle (ground and clutter left by a crop are outside it); on an
+  annotated real log ``ref_*`` tells how well the annotation encloses the car's own points.
 
 Frames whose ground-truth pose is unknown (NaN) are fed but get NaN metrics; tracks without a
 complete shape get NaN CD/EMD. Tracks are processed in chunks of ``batch_tracks``: within a
@@ -72,7 +79,8 @@ log = logging.getLogger(__name__)
 #: Columns of the per-frame records, in CSV order.
 FIELDS = ("method", "track_id", "frame", "n_det", "n_points", "distance_m",
           "cd_m", "emd_m", "trans_m", "rot_rad", "cd_true_pose_m", "class", "radial_m",
-          "tangential_m", "rot_axis_rad", "length_err_m", "width_err_m", "ref_to_est_m")
+          "tangential_m", "rot_axis_rad", "length_err_m", "width_err_m", "ref_to_est_m",
+          "est_near_out", "est_far_out", "ref_near_out", "ref_far_out")
 _STR_FIELDS = ("method", "track_id", "class")
 _INT_FIELDS = ("frame", "n_det", "n_points")
 #: Percentiles of the estimated cloud's canonical coordinates taken as its extents.
@@ -369,6 +377,42 @@ def estimate_extents(est) -> np.ndarray:
     return hi - lo
 
 
+def footprint(est) -> tuple[np.ndarray, np.ndarray] | None:
+    """The bird's-eye box of an estimate in its own canonical frame: ``(lo, hi)`` (2,) each;
+    the box fit's ``size`` centred on its pose, else the :data:`EXTENT_PERCENTILES` of the
+    complete cloud (as :func:`estimate_extents`); None without points or pose."""
+    size = getattr(est, "size", None)
+    if size is not None:
+        half = np.asarray(size, dtype=np.float64)[:2] / 2
+        return -half, half
+    pred = np.asarray(est.complete, dtype=np.float64)
+    if not len(pred) or not np.all(np.isfinite(est.pose)):
+        return None
+    local = sensor_to_canonical(pred, est.pose)[:, :2]
+    lo, hi = np.percentile(local, EXTENT_PERCENTILES, axis=0)
+    return lo, hi
+
+
+def outside_shares(points: np.ndarray, pose, box) -> tuple[float, float]:
+    """``(near, far)``: the shares of ``points`` (N, 3, sensor frame) outside the bird's-eye
+    ``box`` ``(lo, hi)`` (canonical frame of ``pose``) on the sensor's side of the box centre
+    and beyond it (split by the sign of the point's offset from the box centre along the
+    direction from the centre to the sensor). NaN without points, pose or box."""
+    pts = np.asarray(points, dtype=np.float64)
+    if box is None or not len(pts) or not np.all(np.isfinite(pose)):
+        return np.nan, np.nan
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in box)
+    q = sensor_to_canonical(pts[:, :3], pose)[:, :2].astype(np.float64)
+    out = np.any((q < lo) | (q > hi), axis=1)
+    centre = (lo + hi) / 2
+    yaw = float(pose[3])
+    rot = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+    box_xy = np.asarray(pose[:2], dtype=np.float64) + rot.T @ centre
+    to_sensor = rot @ -box_xy  # the direction to the sensor in the canonical frame
+    near = (q - centre) @ to_sensor > 0
+    return float(np.mean(out & near)), float(np.mean(out & ~near))
+
+
 def radial_tangential(pose_pred, pose_gt) -> tuple[float, float]:
     """The planar translation error split into ``(radial, tangential)`` metres (module doc).
 
@@ -395,6 +439,10 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
     trans, rot = pose_errors(est.pose, gt_pose) if known else (np.nan, np.nan)
     radial, tangential = radial_tangential(est.pose, gt_pose) if known else (np.nan, np.nan)
     length_err, width_err = estimate_extents(est) - track.size[:2]
+    pts = track.points[t]
+    est_out = outside_shares(pts, est.pose, footprint(est))
+    half = np.asarray(track.size, dtype=np.float64)[:2] / 2
+    ref_out = outside_shares(pts, gt_pose, (-half, half)) if known else (np.nan, np.nan)
     cd = cd_tp = ref_to_est = np.nan
     gt = None
     pred = np.asarray(est.complete)
@@ -410,7 +458,9 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
                   cd_m=cd, emd_m=np.nan, trans_m=trans, rot_rad=rot, cd_true_pose_m=cd_tp,
                   **{"class": str(track.meta.get("class") or "")}, radial_m=radial,
                   tangential_m=tangential, rot_axis_rad=min(rot, np.pi - rot),
-                  length_err_m=length_err, width_err_m=width_err, ref_to_est_m=ref_to_est)
+                  length_err_m=length_err, width_err_m=width_err, ref_to_est_m=ref_to_est,
+                  est_near_out=est_out[0], est_far_out=est_out[1], ref_near_out=ref_out[0],
+                  ref_far_out=ref_out[1])
     if do_emd and gt is not None:
         col.add_emd(row, subsample_pair(pred, gt, emd_points, stable_seed(track.track_id, t)))
 
