@@ -78,6 +78,31 @@ def time_it(fn: Callable[[], Any], repeats: int, warmup: int = 1,
     return Timing(tuple(runs), result)
 
 
+def machine_gflops(threads: int, rows: int = 8192, size: int = 512, repeats: int = 5) -> float:
+    """The machine's float32 matrix-product speed right now (GFLOP/s, best of ``repeats``) on
+    ``threads`` PyTorch threads: a (rows x size) by (size x size) product, the shape of the
+    encoders' per-point layers. Printed beside speed tables so that figures taken on different
+    days (this machine's speed moves by 2x from day to day) can be put side by side."""
+    import torch  # lazy: not every benchmark needs it
+
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        gen = torch.Generator().manual_seed(0)
+        a = torch.rand(rows, size, generator=gen)
+        b = torch.rand(size, size, generator=gen)
+        best = min(time_it(lambda: a @ b, repeats, warmup=1).runs)
+    finally:
+        torch.set_num_threads(old)
+    return 2.0 * rows * size * size / best / 1e9
+
+
+def machine_line() -> str:
+    """One line naming this run's :func:`machine_gflops` on 1 and 2 threads."""
+    return (f"machine now: float32 matrix product {machine_gflops(1):.0f} GFLOP/s on 1 thread, "
+            f"{machine_gflops(2):.0f} on 2")
+
+
 def print_table(headers: Sequence[str], rows: Sequence[Sequence[Any]],
                 align: str | None = None) -> None:
     """Print a markdown table, columns padded to a common width.

@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 import torch
-from _bench import bench_parser, print_table, time_it
+from _bench import bench_parser, machine_line, print_table, time_it
 
 from seqshape.model import MODEL_PRESETS, Estimator, ShapePoseNet
 from seqshape.model.engine import BACKENDS
@@ -238,6 +238,7 @@ def main() -> None:
     print(f"torch {torch.__version__}, threads {args.threads}, busy processes {args.busy}, "
           f"{time.strftime('%Y-%m-%d %H:%M %Z')}"
           + ("" if args.compare_with is None else f", old tree {args.compare_with}"))
+    print(machine_line(), flush=True)
     bench = bench_weights if args.compare_with is None else compare_weights
     busy = start_busy(args.busy)
     try:
