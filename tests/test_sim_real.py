@@ -71,6 +71,16 @@ def test_sensor_presets_channels_and_elevations():
     o = np.diff(get_sensor("os128").elevations_deg)
     np.testing.assert_allclose(o, 45 / 127, atol=1e-4)
     assert get_sensor("os128").n_azimuths == 1024
+    # the AV2 pair: the VLP-32C table and its negation 0.1 deg up, 64 distinct channels with
+    # 1/3-deg steps in both dense bands (-4.667..+1.667 upright, -1.567..+4.767 inverted)
+    p = get_sensor("vlp32c_pair")
+    pe = np.array(p.elevations_deg)
+    assert len(pe) == 64 and len(set(np.round(pe, 4))) == 64
+    np.testing.assert_allclose(np.sort(pe[32:]), np.sort(0.1 - e), atol=1e-9)
+    assert min(pe) == pytest.approx(-25.0) and max(pe) == pytest.approx(25.1)
+    band = np.sort(pe[(pe > -1.7) & (pe < 1.8)])
+    assert len(band) == 22 and np.diff(band).max() < 0.24  # two interleaved 1/3-deg bands
+    assert "vlp32c_pair" in real.RealConfig().sensors
 
 
 def test_mount_rotation_by_hand():

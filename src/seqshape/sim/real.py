@@ -80,9 +80,10 @@ class TrackerJitter:
 class RealConfig:
     """Parameters of the real scan (module doc); values and sources in docs/generation.md."""
 
-    sensors: tuple[str, ...] = ("vlp16", "vlp32c", "hdl64", "os128")
-    """Sensor models, one drawn per track with ``sensor_weights``."""
-    sensor_weights: tuple[float, ...] = (0.25, 0.25, 0.25, 0.25)
+    sensors: tuple[str, ...] = ("vlp16", "vlp32c", "vlp32c_pair", "hdl64", "os128")
+    """Sensor models, one drawn per track with ``sensor_weights`` (docs/generation.md: the
+    Argoverse 2 pair's dense near-horizon beams put real points where they lie on cars)."""
+    sensor_weights: tuple[float, ...] = (0.15, 0.2, 0.25, 0.2, 0.2)
     height_range: tuple[float, float] = (1.5, 2.2)
     """Mounting height of the LiDAR above the ground (m), uniform."""
     tilt_deg: float = 1.5

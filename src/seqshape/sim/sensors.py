@@ -143,6 +143,10 @@ VLP32C_ELEVATIONS = (-25.0, -1.0, -1.667, -15.639, -11.31, 0.0, -0.667, -8.843, 
                      -1.333)
 
 
+#: Argoverse 2's two VLP-32C, one upright, one upside down (``vlp32c_pair``).
+VLP32C_PAIR_ELEVATIONS = VLP32C_ELEVATIONS + tuple(round(0.1 - e, 4) for e in VLP32C_ELEVATIONS)
+
+
 def _uniform(lo: float, hi: float, n: int) -> tuple[float, ...]:
     return tuple(round(float(e), 4) for e in np.linspace(lo, hi, n))
 
@@ -158,6 +162,13 @@ SENSORS: dict[str, LidarConfig] = {
     "vlp32c": LidarConfig("vlp32c", VLP32C_ELEVATIONS, 0.2, max_range=200.0, min_range=1.0,
                           height=1.84, range_noise_std=0.015, dropout=0.01, rate_hz=10.0,
                           divergence_mrad=3.4, range_10pct=70.0),
+    # Two VLP-32C stacked on the roof, the lower one upside down (Argoverse 2's pair, at
+    # 1.64 and 1.53 m): the upright unit's table and the inverted one's (-e) in one 64-channel
+    # head, the second set 0.1 deg higher as measured on the AV2 log (so no two channels
+    # coincide); both dense bands (0.33 deg) lie near the horizon, -4.7..+1.7 and -1.6..+4.8.
+    "vlp32c_pair": LidarConfig("vlp32c_pair", VLP32C_PAIR_ELEVATIONS, 0.2, max_range=200.0,
+                               min_range=1.0, height=1.6, range_noise_std=0.015, dropout=0.01,
+                               rate_hz=10.0, divergence_mrad=3.4, range_10pct=70.0),
     # Ouster OS1-128 (rev 6) at 10 Hz, 1024 columns: 128 beams uniform over 45 deg (+-22.5),
     # 0.352 deg azimuth step, precision +-3 cm, divergence 0.18 deg (3.1 mrad), 45 m at 10 %
     # (datasheet: 90 % detection) -> ~50 m at 50 %
