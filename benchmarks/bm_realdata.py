@@ -7,7 +7,8 @@ part: positive = too far from the sensor), yaw error with and without 180-degree
 flip rate, length and width errors of the estimated extents, the CD against the accumulated
 reference and its one-way reference->estimate half, and the share of each frame's points left
 outside the box on the sensor's side and beyond it, for the estimate and for the annotation
-(a check that needs no annotation: a box too far from the sensor leaves points out in front); cars and larger vehicles separately, and
+(the annotation's share behind its box tells whether it encloses the cars' own points; the
+estimates' shares compare the methods, docs/evaluation.md); cars and larger vehicles separately, and
 the centre error by points per frame. With ``--finetune-steps N`` it also fine-tunes the
 sequential model on the logs' own references (``seqshape train --init pretrained``, stage 3
 only) and prints the same tables after, on held-out vehicles (``--split-by track``) and on all.

@@ -32,11 +32,12 @@ What is computed, per method and per scored frame ``t`` of a track:
   against the true box size (:func:`estimate_extents`);
 * ``est_near_out``, ``est_far_out``: the share of frame t's points outside the estimate's
   bird's-eye footprint (:func:`footprint`) on the side facing the sensor / the far side
-  (:func:`outside_shares`); ``ref_near_out``, ``ref_far_out``: the same for the true box. These
-  need no reference to be right: a box placed too far from the sensor leaves points out in
-  front of it, one too near leaves them out behind it. On synthetic tracks the true box holds
-  every point of the vehicle (ground and clutter left by a crop are outside it); on an
-  annotated real log ``ref_*`` tells how well the annotation encloses the car's own points.
+  (:func:`outside_shares`); ``ref_near_out``, ``ref_far_out``: the same for the true box. On
+  synthetic tracks the true box holds every point of the vehicle (ground and clutter left by a
+  crop are outside it); on an annotated real log ``ref_*`` tells how well the annotation
+  encloses the car's own points. ``est_*`` compares methods on the same tracks (a box too far
+  from the sensor leaves more points in front); across sets it depends on the point layout as
+  much as on the placement.
 
 Frames whose ground-truth pose is unknown (NaN) are fed but get NaN metrics; tracks without a
 complete shape get NaN CD/EMD. Tracks are processed in chunks of ``batch_tracks``: within a
