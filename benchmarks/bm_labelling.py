@@ -31,6 +31,11 @@ included), per mode and worker count, old and new alternating ``--repeats`` time
 seconds and frames/s (medians), the ratio, whether the files are byte-identical, and each
 side's % miss / mIoU against the scenes' reference.
 
+``--density``: only the vehicles per frame of every log of ``--scenes`` (distribution over
+frames): ``labelled`` (in ``label_02``: amodal mask in the image), ``visible`` (reference
+KINS instances) and ``visible_lidar`` (those with >= 1 LiDAR return in their box). Scenes
+generated here take ``--vehicles MIN MAX`` (``seqshape scenes --vehicles``).
+
 ``--stages [--baseline-src OLD/src]``: speed only, per stage. Each of ``--modes`` (sc-gt and
 sc-seg by default) labels the sequences in a fresh process (``benchmarks/_label_stages.py``),
 once with cProfile for the seconds per stage and ``--repeats`` times without it for frames/s,
@@ -78,18 +83,73 @@ from seqshape.data.kins import read_kins, write_kins  # noqa: E402
 from seqshape.data.kitti import KittiTrackingSequence, label_to_pose  # noqa: E402
 from seqshape.sim.degrade import DegradeConfig  # noqa: E402
 from seqshape.sim.scene_writer import generate_scenes, load_scene, scene_config  # noqa: E402
+from seqshape.sim.scenes import check_vehicle_range  # noqa: E402
 from seqshape.vehicles.surface import sample_outer_surface  # noqa: E402
 
 
-def ensure_scenes(path: Path | None, sequences: int, frames: int, seed: int) -> Path:
-    """The scene set folder, generated with ``seqshape scenes`` when absent."""
+def ensure_scenes(path: Path | None, sequences: int, frames: int, seed: int,
+                  vehicles: tuple[int, int] | None = None) -> Path:
+    """The scene set folder, generated with ``seqshape scenes`` when absent (``vehicles``:
+    ``seqshape scenes --vehicles MIN MAX``, None: the preset's)."""
     if path is None:
-        path = Path(tempfile.gettempdir()) / f"seqshape_bm_labelling_{sequences}x{frames}_{seed}"
+        dense = "" if vehicles is None else f"_v{vehicles[0]}-{vehicles[1]}"
+        path = Path(tempfile.gettempdir()) / (f"seqshape_bm_labelling_{sequences}x{frames}_"
+                                              f"{seed}{dense}")
     if not (path / "scene.json").is_file() or not list((path / "amodal").glob("*.json")):
         print(f"generating kitti-like scenes in {path} ...", flush=True)
-        cfg = scene_config("kitti-like", n_sequences=sequences, frames=(frames, frames))
+        cfg = scene_config("kitti-like", n_sequences=sequences, frames=(frames, frames),
+                           n_vehicles=vehicles)
         generate_scenes(path, cfg, seed=seed, workers=1, degrade=DegradeConfig())
     return path
+
+
+def vehicles_per_frame(root: Path, sequence: str) -> dict[str, list[int]]:
+    """Per frame of ``sequence``, how many vehicles are ``labelled`` (``label_02``: amodal
+    mask in the image), ``visible`` (a reference KINS instance: visible area >= the scenes'
+    ``--min-visible-area``) and ``visible_lidar`` (visible and >= 1 LiDAR return inside its
+    box: what a LiDAR-based labeller can label)."""
+    seq = KittiTrackingSequence(root, sequence)
+    doc = read_kins(root / "amodal" / f"{sequence}.json")
+    frame_of = {img["id"]: int(img.get("frame", -1)) for img in doc["images"]}
+    boxes = {(lab.frame, str(lab.track_id)): label_to_pose(lab, seq.calib)
+             for lab in seq.labels}
+    out = {k: [0] * len(seq.frames) for k in ("labelled", "visible", "visible_lidar")}
+    index = {f: i for i, f in enumerate(seq.frames)}
+    for lab in seq.labels:
+        out["labelled"][index[lab.frame]] += 1
+    scans: dict[int, object] = {}
+    for a in doc["annotations"]:
+        frame = frame_of[a["image_id"]]
+        out["visible"][index[frame]] += 1
+        key = (frame, str(a.get("track_id")))
+        if key in boxes:
+            if frame not in scans:
+                scans[frame] = seq.velodyne(frame)[:, :3]
+            out["visible_lidar"][index[frame]] += int(len(crop_box(scans[frame],
+                                                                   *boxes[key])) > 0)
+    return out
+
+
+def run_density(root: Path, sequences) -> None:
+    """The ``--density`` table: the distribution over frames of :func:`vehicles_per_frame`."""
+    import numpy as np  # here only: the rest of the benchmark needs no numpy of its own
+
+    counts: dict[str, list[int]] = {}
+    placed = []
+    for s in sequences:
+        for key, per in vehicles_per_frame(root, s).items():
+            counts.setdefault(key, []).extend(per)
+        doc = json.loads((root / "scene" / f"{s}.json").read_text())
+        placed.append(len(doc["agents"]))
+    print(f"scenes: {root} ({len(sequences)} logs, {len(counts['visible'])} frames; "
+          f"vehicles placed per log: {placed})")
+    rows = []
+    for key, per in counts.items():
+        q = np.percentile(per, [0, 10, 25, 50, 75, 90, 100])
+        rows.append((key, f"{np.mean(per):.1f}", *(f"{x:g}" for x in q),
+                     f"{np.mean((np.asarray(per) >= 10) & (np.asarray(per) <= 20)) * 100:.0f}"))
+    print_table(("vehicles per frame", "mean", "min", "p10", "p25", "median", "p75", "p90",
+                 "max", "% frames 10-20"), rows)
 
 
 def oracle_labels(root: Path, sequence: str, cfg: LabelConfig, max_frames: int | None = None):
@@ -377,10 +437,22 @@ def main(argv=None) -> int:
                         "log of --scenes (module doc); --modes default sc-gt sc-seg")
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2],
                    help="--end-to-end: the --workers values to time")
+    p.add_argument("--vehicles", nargs=2, metavar=("MIN", "MAX"), default=None,
+                   help="when the scenes are generated here: non-ego vehicles per sequence "
+                        "(seqshape scenes --vehicles; default the kitti-like preset's)")
+    p.add_argument("--density", action="store_true",
+                   help="only print the vehicles per frame of every log of --scenes "
+                        "(labelled, visible, visible with LiDAR returns)")
     args = p.parse_args(argv)
 
-    root = ensure_scenes(args.scenes, args.skip + args.sequences, args.frames, args.seed)
+    vehicles = None if args.vehicles is None else check_vehicle_range(args.vehicles,
+                                                                      "--vehicles")
+    root = ensure_scenes(args.scenes, args.skip + args.sequences, args.frames, args.seed,
+                         vehicles)
     sequences = KittiTrackingSequence.sequences(root)[args.skip:args.skip + args.sequences]
+    if args.density:
+        run_density(root, KittiTrackingSequence.sequences(root))
+        return 0
     if args.end_to_end:
         if args.modes == p.get_default("modes"):
             args.modes = ["sc-gt", "sc-seg"]

@@ -458,3 +458,96 @@ def test_labeller_places_a_known_box_seen_before_its_first_points(online):
     for i in (0, 1):
         np.testing.assert_array_equal(comp.poses[i], gt[i])
         assert np.linalg.norm(comp.clouds[i].mean(axis=0)[:2] - gt[i, :2]) < 1.0
+
+
+# ----------------------------------------------------------------- shapes moved to new poses
+
+
+def _place_reference(complete, own, poses):
+    """``offline._place`` frame by frame with the geometry functions (the code before it was
+    vectorised): the reference it must equal bit for bit."""
+    from seqshape.geometry import canonical_to_sensor, wrap_angle
+
+    out = np.array(complete, dtype=np.float32)
+    for t in range(len(poses)):
+        if np.array_equal(own[t], poses[t]):
+            continue
+        mine = np.array(own[t], dtype=np.float64)
+        if abs(wrap_angle(mine[3] - poses[t, 3])) > math.pi / 2:
+            mine[3] = wrap_angle(mine[3] + math.pi)
+        out[t] = canonical_to_sensor(sensor_to_canonical(complete[t], mine), poses[t])
+    return out
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_place_moves_each_shape_as_frame_by_frame(dtype):
+    from seqshape.model.offline import _place
+
+    rng = np.random.default_rng(5)
+    t, k = 12, 50
+    own = np.c_[rng.normal(0, 20, (t, 3)), rng.uniform(-math.pi, math.pi, t)]
+    poses = own + np.c_[rng.normal(0, 0.3, (t, 3)), rng.normal(0, 0.2, t)]
+    poses[[1, 4], 3] = own[[1, 4], 3] + math.pi + 0.1  # flipped: the shape's front relabelled
+    poses[[0, 7]] = own[[0, 7]]  # unchanged frames keep their shape as it is
+    complete = (own[:, None, :3] + rng.normal(0, 2, (t, k, 3))).astype(dtype)
+    got = _place(complete, own, poses)
+    want = _place_reference(complete, own, poses)
+    assert got.dtype == np.float32 and np.array_equal(got, want)
+    assert np.array_equal(got[[0, 7]], complete[[0, 7]].astype(np.float32))
+    # the shape stays where it was estimated when only the heading turned by pi
+    turned = own.copy()
+    turned[:, 3] += math.pi
+    assert np.allclose(_place(complete, own, turned), complete, atol=1e-4)
+    # a broadcast (read-only) shape, as the "final" shape source gives it
+    final = np.broadcast_to(complete[3], complete.shape)
+    assert np.array_equal(_place(final, own, poses), _place_reference(final, own, poses))
+    assert _place(complete[:0], own[:0], poses[:0]).shape == (0, k, 3)
+
+
+# --------------------------------------------------------------- the smoothing's local fits
+
+
+def _local_fit_reference(t, y, window, iterations, scale, max_deg=2, query=None):
+    """The robust local polynomial fit of ``seqshape.model.smooth`` query by query, with
+    ``numpy.linalg.lstsq`` on each query's own window (the code before it was batched)."""
+    query = t if query is None else query
+    val, slope = np.empty((len(query), y.shape[1])), np.zeros((len(query), y.shape[1]))
+    for i, tq in enumerate(query):
+        sel = np.flatnonzero(np.abs(t - tq) <= window)
+        if len(sel) == 0:
+            sel = np.flatnonzero(np.abs(t - t[np.argmin(np.abs(t - tq))]) <= window)
+        dt = t[sel] - tq
+        deg = min(max_deg, len(np.unique(dt)) - 1)
+        if min(np.count_nonzero(dt < 0), np.count_nonzero(dt > 0)) < window / 2:
+            deg = min(deg, 1)
+        a = np.vander(dt, deg + 1, increasing=True)
+        w = np.ones(len(sel))
+        for _ in range(iterations + 1):
+            sw = np.sqrt(w)[:, None]
+            coef = np.linalg.lstsq(a * sw, y[sel] * sw, rcond=None)[0]
+            u = np.linalg.norm(y[sel] - a @ coef, axis=1) / (4.685 * scale)
+            w = np.where(u < 1, (1 - u ** 2) ** 2, 0.0)
+            if w.sum() < deg + 1:
+                w = np.ones(len(sel))
+        val[i] = coef[0]
+        slope[i] = coef[1] if deg >= 1 else 0.0
+    return val, slope
+
+
+def test_local_fit_equals_the_per_query_least_squares():
+    from seqshape.model.smooth import _local_fit
+
+    rng = np.random.default_rng(11)
+    for case in range(40):
+        n = int(rng.integers(1, 60))
+        t = np.sort(rng.choice(np.arange(120), n, replace=False)).astype(np.float64)
+        y = np.cumsum(rng.normal(0, 0.5, (n, 3)), axis=0)
+        bad = rng.random(n) < 0.15  # outliers the robust weights reject
+        y[bad] += rng.normal(0, 4, (int(bad.sum()), 3))
+        query = None if case % 2 else np.arange(t[0] - 12, t[-1] + 12)  # queries off the ends
+        for window, deg in ((8, 2), (np.inf, 1), (2, 2)):
+            got = _local_fit(t, y, window, 3, 0.3, deg, query)
+            want = _local_fit_reference(t, y, window, 3, 0.3, deg, query)
+            for g, w_ in zip(got, want, strict=True):
+                assert g.shape == w_.shape
+                np.testing.assert_allclose(g, w_, rtol=0, atol=1e-9)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -11,6 +15,7 @@ import seqshape.sim.generate as gen
 import seqshape.sim.render as render
 from seqshape._runner import parse_shard
 from seqshape.camera import kitti_default_calib, project_points
+from seqshape.cli import command_parser
 from seqshape.data.kins import annotations_by_image, occlusion_order, read_kins, rle_to_mask
 from seqshape.data.kitti import KittiTrackingSequence, extract_tracks, read_velodyne
 from seqshape.errors import ConfigError, SeqshapeError
@@ -25,15 +30,24 @@ from seqshape.sim.degrade import (
 from seqshape.sim.raycast import cast_posed
 from seqshape.sim.render import GROUND, camera_rays, render_camera
 from seqshape.sim.scene_writer import (
+    PRESETS,
     SceneConfig,
     _rng,
     generate_scenes,
     generate_sequence,
     load_scene,
+    make_scene,
     occlusion_level,
     render_frame,
+    scene_to_json,
 )
-from seqshape.sim.scenes import LayoutConfig, Road, build_scene, check_no_overlap
+from seqshape.sim.scenes import (
+    LayoutConfig,
+    Road,
+    build_scene,
+    check_no_overlap,
+    check_vehicle_range,
+)
 from seqshape.sim.sensors import get_sensor
 from seqshape.vehicles import vehicle_library
 
@@ -261,3 +275,103 @@ def test_degrade_rates_change_instance_counts():
     assert abs(np.mean(small) - n * 0.75) < 4 * np.sqrt(n * 0.25 * 0.75 / images)
     assert abs(np.mean(false) - n * 0.5) < 4 * np.sqrt(n * 0.5 / images)
     assert all(k == n for k in big_kept)  # 1600 px >= small_area: never missed
+
+
+# ------------------------------------------------------------------ denser scenes (--vehicles)
+
+#: sha256 of ``scene_to_json(make_scene(preset, seed 0, sequence i))`` (sorted keys) as the
+#: release before ``--vehicles`` made them: without the option a preset's scenes stay the same
+PRESET_SCENES = {
+    ("kitti-tiny", 0): "b98490184ea4e02f3c73b20e73b5de2be93941bb7ea7d3e1440d105c9d059d4d",
+    ("kitti-tiny", 1): "7f400f674e461ba7710de8cd0cf510e3b35262c0a634e4d0ac6d474777bece35",
+    ("kitti-like", 0): "1c9f40ca25d40d2bfcf1588db6847cf15813d1fc31f5dbf8ba49b7e0dff2e4ed",
+    ("kitti-like", 1): "d2b13c431b54433494bd7d2d570610d1a852a185743ec1b6ba0c55aebd81bba3",
+}
+
+
+def _cli_scene_config(monkeypatch, argv):
+    """The SceneConfig ``seqshape scenes --out o ARGV`` generates with (its run(), up to the
+    call of generate_scenes)."""
+    import seqshape.scripts.scenes as script
+
+    seen = {}
+
+    def capture(out, cfg, **_kw):
+        seen["cfg"] = cfg
+        return []
+
+    monkeypatch.setattr(script, "generate_scenes", capture)
+    script.run(command_parser("scenes")[1].parse_args(["--out", "o", *argv]))
+    return seen["cfg"]
+
+
+@pytest.mark.parametrize("preset", ["kitti-tiny", "kitti-like"])
+def test_presets_make_the_scenes_of_the_release_before(monkeypatch, preset):
+    cfg = _cli_scene_config(monkeypatch, ["--preset", preset])
+    assert cfg == PRESETS[preset]  # no --vehicles: the preset's range, untouched
+    for index in (0, 1):
+        doc = scene_to_json(make_scene(cfg, 0, index), f"{index:04d}", {})
+        digest = hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
+        assert digest == PRESET_SCENES[preset, index], (preset, index)
+
+
+def test_vehicles_option_overrides_the_preset_range(monkeypatch):
+    cfg = _cli_scene_config(monkeypatch, ["--preset", "kitti-like", "--vehicles", "30", "40"])
+    assert cfg == replace(PRESETS["kitti-like"], n_vehicles=(30, 40))
+    assert _cli_scene_config(monkeypatch, ["--vehicles", "0", "0"]).n_vehicles == (0, 0)
+
+
+@pytest.mark.parametrize("values, match", [
+    (["3", "a"], "be two integers MIN MAX, got '3' 'a'"),
+    (["2.5", "4"], "be two integers"),
+    (["+-3", "4"], "be two integers"),
+    (["5", "3"], "satisfy 0 <= MIN <= MAX, got 5 3"),
+    (["-1", "3"], "satisfy 0 <= MIN <= MAX, got -1 3"),
+])
+def test_vehicles_option_is_checked(monkeypatch, values, match):
+    with pytest.raises(ConfigError, match="--vehicles must " + match):
+        _cli_scene_config(monkeypatch, ["--vehicles", *values])
+
+
+def test_vehicle_range_check():
+    assert check_vehicle_range((np.int64(2), 7)) == (2, 7)
+    for bad in [(1,), (1, 2, 3), None, (True, 2), (1.0, 2), (3, 1), (-2, -1)]:
+        with pytest.raises(ConfigError, match="n_vehicles"):
+            check_vehicle_range(bad)
+    with pytest.raises(ConfigError, match=r"LayoutConfig.n_vehicles must satisfy"):
+        LayoutConfig(n_vehicles=(8, 4))
+
+
+def _in_view(scene, t, calib, max_range=80.0):
+    """Agents whose box centre is within ``max_range`` and projects into the image."""
+    poses = scene.sensor_poses(t)
+    uv, depth = project_points(poses[:, :3], calib)
+    inside = ((depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < calib.width) & (uv[:, 1] >= 0)
+              & (uv[:, 1] < calib.height) & (np.hypot(poses[:, 0], poses[:, 1]) < max_range))
+    return int(inside.sum())
+
+
+def test_more_vehicles_fill_the_road_without_overlaps():
+    calib = kitti_default_calib()
+    vehicles = vehicle_library(40, seed=3)
+    preset, dense = [], []
+    for seed in range(3):
+        for n, out in (((10, 20), preset), ((30, 40), dense)):
+            scene = build_scene(LayoutConfig(n_frames=60, n_vehicles=n), vehicles,
+                                np.random.default_rng(seed), 1.73)  # checks the overlaps
+            assert len(scene.agents) <= n[1]
+            out.append((len(scene.agents), np.mean([_in_view(scene, t, calib)
+                                                   for t in range(0, 60, 5)])))
+    # denser roads: more vehicles placed, and more of them in the camera's view
+    assert all(d[0] > p[0] for p, d in zip(preset, dense, strict=True))
+    assert np.mean([d[1] for d in dense]) > 1.5 * np.mean([p[1] for p in preset])
+    empty = build_scene(LayoutConfig(n_frames=5, n_vehicles=(0, 0)), vehicles,
+                        np.random.default_rng(0), 1.73)
+    assert empty.agents == [] and empty.sensor_poses(0).shape == (0, 4)
+
+
+def test_a_scene_without_vehicles_is_written(tmp_path):
+    cfg = SceneConfig("kitti-tiny", 1, (2, 2), (0, 0))
+    (result,) = generate_scenes(tmp_path, cfg, seed=0, degrade=NO_DEGRADE)
+    assert (result.n_frames, result.n_labels, result.n_kins) == (2, 0, 0)
+    assert read_velodyne(tmp_path / "velodyne" / "0000" / "000001.bin").shape[0] > 1000

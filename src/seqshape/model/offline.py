@@ -60,7 +60,7 @@ import torch.nn.functional as F
 
 from seqshape.data.windows import points_length, resample_frame
 from seqshape.errors import ConfigError
-from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+from seqshape.geometry import yaw_to_rotmat
 from seqshape.model.estimator import Estimate, _class_floor, _length_hint, check_points
 from seqshape.model.heading import (
     HeadingConfig,
@@ -346,13 +346,23 @@ def _place(complete: np.ndarray, own: np.ndarray, poses: np.ndarray) -> np.ndarr
     the new yaw: the shape stays where it was estimated, only its front is relabelled) and
     placed with the new pose. Frames whose pose is unchanged keep their shape as it is."""
     out = np.array(complete, dtype=np.float32)
-    for t in range(len(poses)):
-        if np.array_equal(own[t], poses[t]):
-            continue
-        mine = np.array(own[t], dtype=np.float64)
-        if abs(wrap_angle(mine[3] - poses[t, 3])) > math.pi / 2:
-            mine[3] = wrap_angle(mine[3] + math.pi)
-        out[t] = canonical_to_sensor(sensor_to_canonical(complete[t], mine), poses[t])
+    kind = np.asarray(complete).dtype
+    between = kind if kind.kind == "f" else np.dtype(np.float64)
+    own = np.asarray(own, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    moved = np.flatnonzero(~np.all(own == poses, axis=1))
+    if len(moved) == 0:
+        return out
+    # all moved frames at once, the operations of geometry.sensor_to_canonical and
+    # canonical_to_sensor frame by frame (the canonical shape in the input's float type)
+    mine = own[moved].copy()
+    turn = np.abs(wrap_angle(mine[:, 3] - poses[moved, 3])) > math.pi / 2
+    mine[turn, 3] = wrap_angle(mine[turn, 3] + math.pi)
+    new = poses[moved]
+    canonical = ((np.asarray(complete)[moved].astype(np.float64) - mine[:, None, :3])
+                 @ yaw_to_rotmat(mine[:, 3])).astype(between)
+    out[moved] = (canonical.astype(np.float64) @ np.swapaxes(yaw_to_rotmat(new[:, 3]), 1, 2)
+                  + new[:, None, :3]).astype(np.float32)
     return out
 
 

@@ -35,36 +35,67 @@ def _local_fit(t: np.ndarray, y: np.ndarray, window: float, iterations: int,
                ) -> tuple[np.ndarray, np.ndarray]:
     """Robust local polynomial (degree ``max_deg``) fit of ``y (T, D)`` over times ``t (T,)``,
     evaluated at ``query (Q,)`` (default ``t``): (values, slopes), each ``(Q, D)``. A query
-    with no sample within ``window`` uses the nearest samples' window."""
+    with no sample within ``window`` uses the nearest samples' window.
+
+    All queries are fitted at once: each query's window is padded to the longest with rows
+    of weight 0 and a degree below ``max_deg`` leaves its higher columns at zero, so the
+    minimum-norm least-squares solutions (batched pseudo-inverses, with the cut-off of
+    ``numpy.linalg.lstsq``) are those of the per-query fits (tested against them)."""
+    t = np.asarray(t, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
     query = t if query is None else np.asarray(query, dtype=np.float64)
     val = np.empty((len(query), y.shape[1]))
     slope = np.zeros_like(val)
-    for i, tq in enumerate(query):
-        sel = np.flatnonzero(np.abs(t - tq) <= window)
-        if len(sel) == 0:
-            near = t[np.argmin(np.abs(t - tq))]
-            sel = np.flatnonzero(np.abs(t - near) <= window)
-        dt = t[sel] - tq
-        deg = min(max_deg, len(np.unique(dt)) - 1)
-        if min(np.count_nonzero(dt < 0), np.count_nonzero(dt > 0)) < window / 2:
-            # near a track's end the window is one-sided: a quadratic there extrapolates its
-            # curvature (the first detection's error grew: docs/model.md, "Offline mode"), a
-            # line does not
-            deg = min(deg, 1)
-        a = np.vander(dt, deg + 1, increasing=True)  # (M, deg+1): 1, dt, dt^2
-        w = np.ones(len(sel))
-        for _ in range(iterations + 1):
-            sw = np.sqrt(w)[:, None]
-            coef, *_ = np.linalg.lstsq(a * sw, y[sel] * sw, rcond=None)
-            r = np.linalg.norm(y[sel] - a @ coef, axis=1)
-            u = r / (4.685 * scale)
-            w = np.where(u < 1, (1 - u ** 2) ** 2, 0.0)
-            if w.sum() < deg + 1:  # everything rejected: fall back to equal weights
-                w = np.ones(len(sel))
-        val[i] = coef[0]
-        if deg >= 1:
-            slope[i] = coef[1]
+    if len(query) == 0:
+        return val, slope
+    # queries in chunks that keep the padded windows to a few million cells
+    step = max(1, _CELLS // max(1, len(t) * (max_deg + 1) * max(1, y.shape[1])))
+    for lo in range(0, len(query), step):
+        part = slice(lo, lo + step)
+        val[part], slope[part] = _local_fit_batch(t, y, window, iterations, scale, max_deg,
+                                                  query[part])
     return val, slope
+
+
+_CELLS = 4_000_000  #: padded window cells per batch of queries in _local_fit
+
+
+def _local_fit_batch(t, y, window, iterations, scale, max_deg, query):
+    offset = np.abs(t[None, :] - query[:, None])  # (Q, T)
+    inside = offset <= window
+    lonely = ~inside.any(axis=1)
+    if lonely.any():
+        near = t[np.argmin(offset[lonely], axis=1)]
+        inside[lonely] = np.abs(t[None, :] - near[:, None]) <= window
+    width = int(inside.sum(axis=1).max())
+    idx = np.argsort(~inside, axis=1, kind="stable")[:, :width]  # each window's samples first
+    valid = np.take_along_axis(inside, idx, axis=1)  # (Q, M)
+    dt = np.where(valid, t[idx] - query[:, None], 0.0)
+    # degree per query: at most the distinct times - 1, a line where the window is one-sided
+    _, rank = np.unique(t, return_inverse=True)
+    ranks = np.sort(np.where(valid, rank[idx], -1), axis=1)
+    distinct = np.count_nonzero(np.diff(ranks, axis=1) != 0, axis=1) + (ranks[:, 0] >= 0)
+    deg = np.minimum(max_deg, distinct - 1)
+    sided = np.minimum(np.count_nonzero(valid & (dt < 0), axis=1),
+                       np.count_nonzero(valid & (dt > 0), axis=1)) < window / 2
+    deg = np.where(sided, np.minimum(deg, 1), deg)
+    powers = np.arange(max_deg + 1)
+    a = dt[:, :, None] ** powers  # (Q, M, P): 1, dt, dt^2
+    a = np.where(powers[None, None, :] <= deg[:, None, None], a, 0.0)
+    ys = y[idx]  # (Q, M, D)
+    count = valid.sum(axis=1)
+    cutoff = np.finfo(np.float64).eps * np.maximum(count, deg + 1)
+    w = valid.astype(np.float64)
+    for _ in range(iterations + 1):
+        sw = np.sqrt(w)[:, :, None]
+        coef = np.linalg.pinv(a * sw, rcond=cutoff) @ (ys * sw)  # (Q, P, D)
+        r = np.linalg.norm(ys - a @ coef, axis=2)
+        u = r / (4.685 * scale)
+        w = np.where(valid & (u < 1), (1 - u ** 2) ** 2, 0.0)
+        rejected = w.sum(axis=1) < deg + 1  # everything rejected: fall back to equal weights
+        w[rejected] = valid[rejected]
+    slope = np.where((deg >= 1)[:, None], coef[:, min(1, max_deg)], 0.0)
+    return coef[:, 0], slope
 
 
 def axial_mean(angles) -> float:

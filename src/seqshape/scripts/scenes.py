@@ -13,6 +13,7 @@ from seqshape.errors import ConfigError
 from seqshape.scripts._config_args import add_config_arguments, config_kwargs, field_help
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 from seqshape.sim.scene_writer import generate_scenes, scene_config
+from seqshape.sim.scenes import check_vehicle_range
 
 HELP = "generate camera+LiDAR scenes in the KITTI tracking layout"
 #: DegradeConfig fields and their option names (``--degrade-*``, as released)
@@ -42,7 +43,8 @@ def degrade_config(args) -> DegradeConfig:
 def add_arguments(p) -> None:
     p.add_argument("--preset", default="kitti-tiny", choices=["kitti-tiny", "kitti-like"],
                    help="kitti-tiny: 1 sequence of 20 frames, 5-7 vehicles (seconds); "
-                        "kitti-like: 4 sequences of 60-100 frames, 10-20 vehicles")
+                        "kitti-like: 4 sequences of 60-100 frames, 10-20 vehicles (vehicles "
+                        "per sequence, not all in view)")
     p.add_argument("--out", required=True, help="output folder (KITTI tracking layout)")
     p.add_argument("--seed", type=int, default=0, help="master seed")
     p.add_argument("--sensor", default="hdl64", choices=["hdl64", "vlp16"],
@@ -52,6 +54,10 @@ def add_arguments(p) -> None:
     p.add_argument("--frames", type=int, default=None,
                    help="override the frames per sequence (fixed count; default: the "
                         "preset's range)")
+    p.add_argument("--vehicles", nargs=2, metavar=("MIN", "MAX"), default=None,
+                   help="non-ego vehicles per sequence, an inclusive range (0 <= MIN <= "
+                        "MAX; as many as fit on the road are placed: section Denser scenes "
+                        "of docs/scenes.md; default: the preset's range)")
     p.add_argument("--min-visible-area", type=int, default=None,
                    help="smallest visible area (px) of a KINS / 2D instance (default 20)")
     p.add_argument("--workers", type=int, default=1, help="processes (one sequence each)")
@@ -68,8 +74,11 @@ def run(args) -> int:
         raise ConfigError("--workers must be >= 1")
     shard = parse_shard(args.shard)
     frames = None if args.frames is None else (args.frames, args.frames)
+    vehicles = None if args.vehicles is None else check_vehicle_range(args.vehicles,
+                                                                      "--vehicles")
     cfg = scene_config(args.preset, n_sequences=args.sequences, frames=frames,
-                       sensor=args.sensor, min_visible_area=args.min_visible_area)
+                       n_vehicles=vehicles, sensor=args.sensor,
+                       min_visible_area=args.min_visible_area)
     degrade = degrade_config(args)
     start = time.perf_counter()
     results = generate_scenes(args.out, cfg, seed=args.seed, workers=args.workers,

@@ -20,13 +20,18 @@ pose; :meth:`Scene.sensor_poses` gives every vehicle's ``(x, y, z, yaw)`` in tha
 
 from __future__ import annotations
 
+import logging
+import numbers
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from seqshape.errors import SeqshapeError
+from seqshape.errors import ConfigError, SeqshapeError
 from seqshape.geometry import compose, invert, wrap_angle
 from seqshape.sim.kinematics import footprints_overlap
+
+log = logging.getLogger(__name__)
 
 EGO_SIZE = np.array([4.6, 1.8, 1.6])  #: ego car footprint (for collision checks), LiDAR at centre
 PARKING_WIDTH = 2.6  #: width of the parking strip beyond each road edge (m)
@@ -144,6 +149,26 @@ class Scene:
         return np.array([compose(inv, p) for p in self.world_poses(t)]).reshape(-1, 4)
 
 
+def check_vehicle_range(n_vehicles, what: str = "n_vehicles") -> tuple[int, int]:
+    """``n_vehicles`` as an inclusive ``(min, max)`` pair of ints, ``0 <= min <= max``;
+    :class:`ConfigError` naming ``what`` otherwise (strings of digits are accepted, as a
+    command line gives them)."""
+    try:
+        lo, hi = n_vehicles
+    except (TypeError, ValueError):
+        raise ConfigError(f"{what} must be two integers MIN MAX, got {n_vehicles!r}") from None
+    out = []
+    for v in (lo, hi):
+        if isinstance(v, str) and re.fullmatch(r"\s*[+-]?[0-9]+\s*", v):
+            v = int(v)
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+            raise ConfigError(f"{what} must be two integers MIN MAX, got {lo!r} {hi!r}")
+        out.append(int(v))
+    if not 0 <= out[0] <= out[1]:
+        raise ConfigError(f"{what} must satisfy 0 <= MIN <= MAX, got {out[0]} {out[1]}")
+    return out[0], out[1]
+
+
 @dataclass(frozen=True)
 class LayoutConfig:
     """Random layout parameters of one sequence."""
@@ -156,6 +181,9 @@ class LayoutConfig:
     ego_speed: tuple[float, float] = (6.0, 10.0)  # m/s
     other_speed: tuple[float, float] = (5.0, 12.0)
     lookahead: float = 45.0  # vehicles are spread up to this far beyond the ego's end point (m)
+
+    def __post_init__(self):
+        check_vehicle_range(self.n_vehicles, "LayoutConfig.n_vehicles")
 
 
 def _idm_lanes(lanes, n_frames: int, dt: float, substeps: int = 5):
@@ -272,6 +300,9 @@ def build_scene(cfg: LayoutConfig, vehicles: list, rng: np.random.Generator,
             else:
                 moving_world[i] = w
     placed = sorted(list(parked_world) + list(moving_world))
+    if len(placed) < n_total:
+        log.info("placed %d of %d vehicles: the road is full (section Denser scenes of "
+                 "docs/scenes.md)", len(placed), n_total)
     agents = [Agent(track_id=k, vehicle_index=i, parked=i in parked_world,
                     world=parked_world.get(i, moving_world.get(i))) for k, i in enumerate(placed)]
     colours = _colours(rng, len(agents))
