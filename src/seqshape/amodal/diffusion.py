@@ -17,7 +17,8 @@ normalised to sum 1 (as LDLS's transition matrix: sparse and dense regions alike
 ``L (N, C)`` iterate ``L <- rownorm(W L + lam * Y)`` from ``L = Y`` (``Y`` the pixel labels),
 so a point keeps its pixel's label only when its 3D neighbourhood agrees: background points seen
 through a mask (a wall behind a car, or the ground inside a dilated mask) are pulled back to
-background by their neighbours. A point's label is the argmax; then each instance keeps only
+background by their neighbours. The sweeps run per block of connected components on the label
+columns present there, bit for bit the full-width iteration (:func:`propagate_labels`). A point's label is the argmax; then each instance keeps only
 its main cluster (:func:`vehicle_cluster`: the largest connected component of its points and
 the components that fit one vehicle with it), which drops the remaining strays.
 The link distance of that filter grows with range, ``max(cluster_gap, cluster_gap_per_m *
@@ -46,6 +47,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from seqshape.data.ground import _fit_plane, _ransac_plane, ground_plane  # noqa: F401
+
+try:  # the kernel of ``csr_matrix @ ndarray`` (2-D), called without its Python dispatch
+    from scipy.sparse._sparsetools import csr_matvecs as _csr_matvecs
+except ImportError:  # pragma: no cover - a SciPy without it: the public product
+    _csr_matvecs = None
 
 log = logging.getLogger(__name__)
 
@@ -92,10 +98,149 @@ def pixel_labels(uv, masks: Sequence[np.ndarray]) -> np.ndarray:
         h, w = masks[0].shape
         col = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, w - 1)
         row = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, h - 1)
+        flat_c = row * w + col  # (N,): each point's pixel in a row-major (h, w) mask
+        flat_f = col * h + row  # ... in a column-major one (decoded RLE masks are)
         for m, mask in enumerate(masks):
-            y[:, m] = mask[row, col]
+            mask = np.asarray(mask)
+            if mask.flags.c_contiguous:
+                y[:, m] = mask.reshape(-1)[flat_c]
+            elif mask.flags.f_contiguous:
+                y[:, m] = mask.T.reshape(-1)[flat_f]
+            else:
+                y[:, m] = mask[row, col]
     y[:, c] = y[:, :c].sum(1) == 0
     return y / y.sum(1, keepdims=True)
+
+
+def _blocks(w: sp.csr_matrix, y: np.ndarray, min_rows: int = 256):
+    """The graph ``w (N, N)`` cut into blocks of whole connected components for
+    :func:`propagate_labels`: a list of ``(rows, sub, cols)``, ``rows`` the block's nodes
+    (ascending), ``sub`` its square CSR block (each row's entries in ``w``'s order, so every
+    product sums in the same order as ``w``'s), ``cols`` the label columns of ``y (N, C+1)``
+    that are nonzero somewhere in the block (the others stay exactly 0 there at every sweep).
+    Components under ``min_rows`` nodes share one block (the union of their columns)."""
+    n = w.shape[0]
+    _, comp = connected_components(w, directed=False)
+    sizes = np.bincount(comp)
+    big = sizes >= min_rows
+    group = np.where(big[comp], comp, -1)  # the small components together
+    out = []
+    nz = y != 0  # (N, C+1)
+    for g in np.unique(group):
+        rows = np.flatnonzero(group == g)
+        local = np.full(n, -1, dtype=np.int64)
+        local[rows] = np.arange(len(rows))
+        starts, ends = w.indptr[rows], w.indptr[rows + 1]
+        lens = ends - starts
+        indptr = np.zeros(len(rows) + 1, dtype=np.int64)
+        np.cumsum(lens, out=indptr[1:])
+        pos = np.repeat(starts - indptr[:-1], lens) + np.arange(indptr[-1])
+        sub = sp.csr_matrix((w.data[pos], local[w.indices[pos]], indptr),
+                            shape=(len(rows), len(rows)))
+        cols = np.flatnonzero(nz[rows].any(axis=0))
+        out.append((rows, sub, cols))
+    return out
+
+
+def _pairwise_sum(columns: list) -> np.ndarray | None:
+    """The sum of ``columns`` (arrays, or None for a column of exact zeros) in the order of
+    numpy's pairwise summation of a row (``a.sum(1)`` of a C-contiguous ``(R, W)`` array,
+    ``W = len(columns)`` below 128: sequential below 8 terms, else eight running sums over
+    blocks of eight, a fixed tree, then the rest in order). Adding an exact zero (the values
+    are >= 0) changes nothing, so the zero columns are skipped; None when all are zero."""
+    def add(x, y):
+        return y if x is None else x if y is None else x + y
+
+    n = len(columns)
+    if n < 8:
+        res = None
+        for col in columns:
+            res = add(res, col)
+        return res
+    r = list(columns[:8])
+    i = 8
+    while i < n - n % 8:
+        for j in range(8):
+            r[j] = add(r[j], columns[i + j])
+        i += 8
+    res = add(add(add(r[0], r[1]), add(r[2], r[3])), add(add(r[4], r[5]), add(r[6], r[7])))
+    for col in columns[i:]:
+        res = add(res, col)
+    return res
+
+
+_SUM_ORDER_OK: dict[int, bool] = {}
+
+
+def _sum_order_ok(width: int) -> bool:
+    """Whether :func:`_pairwise_sum` gives numpy's row sums bit for bit at this width
+    (checked once per width on random rows with zeros; else the rows are summed at full width)."""
+    if width not in _SUM_ORDER_OK:
+        ok = width < 128
+        if ok:
+            rng = np.random.default_rng(width)
+            for rows in (1, 3, 257):
+                a = rng.random((rows, width)) * 10.0 ** rng.integers(-9, 3, (rows, width))
+                a[rng.random(a.shape) < 0.4] = 0.0
+                cols = [a[:, j].copy() if j % 3 else None for j in range(width)]
+                a[:, [j for j in range(width) if not j % 3]] = 0.0
+                got = _pairwise_sum(cols)
+                got = np.zeros(rows) if got is None else got
+                ok = ok and np.array_equal(got, a.sum(1))
+        _SUM_ORDER_OK[width] = ok
+    return _SUM_ORDER_OK[width]
+
+
+def _product(sub: sp.csr_matrix, x: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """``sub @ x`` for a C-contiguous float64 ``x (R, K)``, written to ``out (R, K)``: the
+    kernel scipy's product calls for a 2-D operand (``csr_matvecs``; each row's terms added
+    in order into zeros), or the product itself without it."""
+    if _csr_matvecs is None:
+        out[...] = sub @ x
+        return out
+    out.fill(0.0)
+    _csr_matvecs(sub.shape[0], sub.shape[1], x.shape[1], sub.indptr, sub.indices, sub.data,
+                 x.ravel(), out.ravel())
+    return out
+
+
+def propagate_labels(w: sp.csr_matrix, y: np.ndarray, lam: float, iterations: int
+                     ) -> np.ndarray:
+    """``iterations`` sweeps of ``L <- rownorm(w L + lam y)`` from ``L = y`` (module doc):
+    ``(N, C+1)``, bit for bit the full-width loop (``lab = w @ lab; lab += lam * y;
+    lab /= lab.sum(1, keepdims=True)``).
+
+    The graph splits into connected components, and inside one only the label columns
+    that its pixel labels use are ever nonzero (the others are sums of exact zeros). Each
+    block of components (:func:`_blocks`) sweeps on its own columns only, with the same
+    sparse product (each row's terms in the same order, so the same sums); the row sums
+    add the nonzero columns in the order numpy's row sum adds the full-width row
+    (:func:`_pairwise_sum`), so they are the same sums too. About a fifth of the
+    full-width arithmetic on kitti-like frames.
+    """
+    n, width = y.shape
+    if n == 0 or iterations <= 0:
+        return y.copy()
+    lab = np.zeros((n, width))
+    exact_order = _sum_order_ok(width)
+    for rows, sub, cols in _blocks(w, y):
+        pull = lam * y[np.ix_(rows, cols)]  # (R, K): lam * y, elementwise as the full loop
+        cur = y[np.ix_(rows, cols)]
+        slot = np.full(width, -1)
+        slot[cols] = np.arange(len(cols))
+        full = None if exact_order else np.zeros((len(rows), width))
+        spare = np.empty_like(cur)
+        for _ in range(iterations):
+            cur, spare = _product(sub, cur, spare), cur
+            cur += pull
+            if full is None:
+                total = _pairwise_sum([None if k < 0 else cur[:, k] for k in slot])
+            else:  # the rows at full width (the zeros in place), summed by numpy
+                full[:, cols] = cur
+                total = full.sum(1)
+            cur /= total[:, None]
+        lab[np.ix_(rows, cols)] = cur
+    return lab
 
 
 def components(points, gap: float) -> np.ndarray:
@@ -205,11 +350,7 @@ def diffuse_labels(points, uv, masks: Sequence[np.ndarray], k: int = 10, sigma: 
         return labels
     y = pixel_labels(uv, masks)  # (N, C+1)
     w = _knn_graph(points, k, sigma, max_edge)
-    lab, pull = y.copy(), lam * y  # (N, C+1) each
-    for _ in range(iterations):
-        lab = w @ lab
-        lab += pull
-        lab /= lab.sum(1, keepdims=True)
+    lab = propagate_labels(w, y, lam, iterations)  # (N, C+1)
     best = lab.argmax(1)
     labels = np.where(best == c, BACKGROUND, best)
     for m in range(c):

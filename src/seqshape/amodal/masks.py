@@ -13,7 +13,8 @@ Occlusion, two rules (``order=``):
   depth of its ``k`` projected points nearest to that pixel (its front surface). The visible
   mask is the amodal mask minus the pixels won by others. The total order (for the KINS ids) is
   a topological sort of the pairwise "in front of" relation (who wins most of the pair's overlap),
-  ties and cycles broken by median depth.
+  ties and cycles broken by median depth. Only the instances that can be nearest at a pixel (by the
+  depth ranges of their points) are asked for their local depth there (:func:`_owners`).
 * ``"median"``: instances are ordered by the median depth of their projected points; the visible
   mask is the amodal mask minus the amodal masks of all instances in front.
 
@@ -124,6 +125,48 @@ def _overlap_pixels(insts: list[InstanceMask]) -> tuple[np.ndarray, np.ndarray]:
     return np.nonzero(count >= 2)
 
 
+def _depth_range(inst: InstanceMask) -> tuple[float, float]:
+    """``(min, max)`` depth of the projected points of ``inst``: bounds of its
+    :func:`_local_depth` at any pixel (``inf`` for none; ``(-inf, inf)`` when unknown)."""
+    if inst.z is None:
+        return -np.inf, np.inf
+    if len(inst.z) == 0:
+        return np.inf, np.inf
+    return float(np.min(inst.z)), float(np.max(inst.z))
+
+
+def _owners(insts: list[InstanceMask], cover: np.ndarray, pix: np.ndarray) -> np.ndarray:
+    """``(P,)`` the instance nearest in front at each overlap pixel: the argmin over the
+    instances of their :func:`_local_depth` there (``inf`` where an instance does not cover
+    the pixel; ties to the lower index), ``cover (n, P)``, ``pix (P, 2)`` as ``(u, v)``.
+
+    The local depth of an instance lies between the least and the largest depth of its points
+    (:func:`_depth_range`), so an instance whose least depth exceeds the smallest largest
+    depth of the instances covering a pixel cannot be nearest there (some instance is nearer
+    by a strict margin). Only the others, the candidates, are asked for their local depth, and
+    only at the pixels with two candidates or more; a pixel with one candidate is its.
+    The argmin is that of the full comparison, ties included.
+    """
+    n, p = cover.shape
+    ranges = np.array([_depth_range(m) for m in insts], dtype=np.float64).reshape(n, 2)
+    lo, hi = ranges[:, 0], ranges[:, 1]
+    best_hi = np.where(cover, hi[:, None], np.inf).min(axis=0)  # (P,)
+    cand = cover & (lo[:, None] <= best_hi[None, :])  # (n, P)
+    count = cand.sum(axis=0)
+    owner = np.argmax(cand, axis=0)  # the single candidate (first one where several)
+    ask = np.flatnonzero(count >= 2)
+    if len(ask) == 0:
+        return owner
+    cand = cand[:, ask]
+    depth = np.full(cand.shape, np.inf)
+    for i in range(n):
+        sel = cand[i]
+        if sel.any():
+            depth[i, sel] = _local_depth(insts[i], pix[ask[sel]])
+    owner[ask] = np.argmin(depth, axis=0)
+    return owner
+
+
 def _resolve_pixel(insts: list[InstanceMask]) -> np.ndarray:
     """Per-pixel ownership; returns ``wins (n, n)``: pixels of overlap i-vs-j won by i."""
     n = len(insts)
@@ -133,12 +176,7 @@ def _resolve_pixel(insts: list[InstanceMask]) -> np.ndarray:
         return wins
     pix = np.c_[cols, rows].astype(np.float64)  # (P, 2) as (u, v)
     cover = np.stack([m.amodal[rows, cols] for m in insts])  # (n, P)
-    depth = np.full(cover.shape, np.inf)
-    for i in range(n):
-        sel = cover[i]
-        if sel.any():
-            depth[i, sel] = _local_depth(insts[i], pix[sel])
-    owner = np.argmin(depth, axis=0)  # (P,)
+    owner = _owners(insts, cover, pix)  # (P,)
     own = np.zeros(cover.shape, dtype=np.float64)  # (n, P): the owner, where it covers
     own[owner, np.arange(len(owner))] = cover[owner, np.arange(len(owner))]
     wins = np.rint(own @ cover.T.astype(np.float64)).astype(np.int64)  # won by i over j
