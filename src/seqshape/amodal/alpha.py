@@ -104,9 +104,12 @@ def _dedup(uv: np.ndarray, grid: float) -> np.ndarray:
         return np.unique(uv, axis=0)
     q = np.round(uv / grid).astype(np.int64)
     q -= q.min(0)
-    key = q[:, 0] * (int(q[:, 1].max()) + 1) + q[:, 1]
-    _, first = np.unique(key, return_index=True)
-    return q[first].astype(np.float64) * grid + np.round(uv.min(0) / grid) * grid
+    span = int(q[:, 1].max()) + 1
+    key = np.sort(q[:, 0] * span + q[:, 1])  # x major, y minor
+    key = key[np.r_[True, key[1:] != key[:-1]]]  # each cell once
+    q = np.empty((len(key), 2), dtype=np.int64)
+    np.divmod(key, span, out=(q[:, 0], q[:, 1]))
+    return q.astype(np.float64) * grid + np.round(uv.min(0) / grid) * grid
 
 
 def auto_alpha_radius(uv: np.ndarray, radii: np.ndarray | None = None,
