@@ -423,6 +423,9 @@ def main(argv=None) -> int:
                    help="sc-seg: move only vehicles with fewer own LiDAR returns (0: all)")
     p.add_argument("--align-min-inside", type=float, default=AlignConfig.min_inside,
                    help="sc-seg: share of a vehicle's own returns kept inside its moved mask")
+    p.add_argument("--placement", default="none",
+                   help="sc-*: the estimator's placement refiner (seqshape label --placement: "
+                        "'pretrained', a refiner file or 'none')")
     p.add_argument("--order", default="pixel", choices=["pixel", "median"])
     p.add_argument("--threads", type=int, default=1,
                    help="torch threads for the estimator (default 1, as `seqshape label`)")
@@ -472,8 +475,8 @@ def main(argv=None) -> int:
 
         torch.set_num_threads(args.threads)
         try:
-            estimator = Estimator.load(args.checkpoint)
-            note = f"checkpoint: {args.checkpoint}"
+            estimator = Estimator.load(args.checkpoint, refiner=args.placement)
+            note = f"checkpoint: {args.checkpoint}, placement refiner: {args.placement}"
         except Exception as exc:  # report and go on with the modes that need no weights
             note = f"sc-* rows skipped: cannot load {args.checkpoint!r} ({exc})"
     print(f"scenes: {root} ({len(sequences)} sequences x first {args.frames} frames); {note}; "
@@ -490,7 +493,7 @@ def main(argv=None) -> int:
                               fit_box_below=args.fit_box_below,
                               min_visible_area=args.min_visible_area,
                               mask_fallback=args.mask_fallback, align=args.align,
-                              trim=args.trim,
+                              trim=args.trim, placement=args.placement,
                               align_config=AlignConfig(max_points=args.align_max_points,
                                                        min_inside=args.align_min_inside))
             name = mode if not mode.startswith("sc-") else f"{mode}/{refine}"

@@ -15,6 +15,7 @@ only) and prints the same tables after, on held-out vehicles (``--split-by track
 
     python benchmarks/bm_realdata.py --dataset av2 --root ../shared/realdata/av2/sensor/val
     python benchmarks/bm_realdata.py --dataset av2 --root ROOT --finetune-steps 300
+    python benchmarks/bm_realdata.py --dataset av2 --root ROOT --refiner pretrained
 
 Without ``--root`` there is nothing to measure: the script says so and exits 0 (real data is
 never part of the repository). Timing is not the point here; ``bm_tracks.py`` times extraction.
@@ -59,10 +60,10 @@ def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> No
 
 
 def evaluate(data: Path, out: Path, checkpoint: str, split: str,
-             baseline: str = "pretrained") -> dict:
+             baseline: str = "pretrained", refiner: str = "none") -> dict:
     if _quiet(["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
-               "--baseline", baseline,
-             "--split", split, "--workers", "1", "--emd-every", "0", "--view", "none"]) != 0:
+               "--baseline", baseline, "--refiner", refiner,
+               "--split", split, "--workers", "1", "--emd-every", "0", "--view", "none"]) != 0:
         sys.exit(f"seqshape evaluate failed on {data}")
     return json.loads((out / "metrics.json").read_text())
 
@@ -108,6 +109,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None, help="work folder (default: temporary)")
     ap.add_argument("--checkpoint", default="pretrained", help="sequential model to evaluate")
     ap.add_argument("--baseline", default="pretrained", help="baseline model to evaluate")
+    ap.add_argument("--refiner", default="none",
+                    help="placement refiner of both networks: a file, 'pretrained' or 'none'")
     ap.add_argument("--finetune-steps", type=int, default=0,
                     help="also fine-tune the sequential model this many stage-3 steps on the "
                          "logs' own references and evaluate again (0: no)")
@@ -118,8 +121,10 @@ def main() -> int:
         return 0
     work = args.out or Path(tempfile.mkdtemp(prefix="bm_realdata_"))
     extract(args.dataset, args.root, work / "tracks", args.sequence, "log")
-    tables(evaluate(work / "tracks", work / "eval", args.checkpoint, "all", args.baseline),
-           f"{args.dataset}: {args.checkpoint} / {args.baseline} weights, all frames")
+    tables(evaluate(work / "tracks", work / "eval", args.checkpoint, "all", args.baseline,
+                    args.refiner),
+           f"{args.dataset}: {args.checkpoint} / {args.baseline} weights, refiner "
+           f"{args.refiner}, all frames")
     if args.finetune_steps > 0:
         extract(args.dataset, args.root, work / "ft_tracks", args.sequence, "track")
         run = work / "ft_run"

@@ -84,11 +84,14 @@ def stop_busy(procs: list[multiprocessing.Process]) -> None:
         p.join()
 
 
-def load(spec: str, backend: str, threads: int | None, seed: int) -> Estimator:
+def load(spec: str, backend: str, threads: int | None, seed: int,
+         refiner: str = "none") -> Estimator:
     if spec == "untrained":
         torch.manual_seed(seed)
         return Estimator(ShapePoseNet(MODEL_PRESETS["small"]), threads=threads, backend=backend)
-    return Estimator.load(spec, threads=threads, backend=backend)
+    if refiner == "none":  # (an older tree's loader may not take the option)
+        return Estimator.load(spec, threads=threads, backend=backend)
+    return Estimator.load(spec, threads=threads, backend=backend, refiner=refiner)
 
 
 def throughput_run(est: Estimator, frames) -> float:
@@ -110,7 +113,7 @@ class Runner:
     """The estimators of one set of weights, one per backend, warmed up on the inputs."""
 
     def __init__(self, spec: str, backends: list[str], args):
-        self.ests = {b: load(spec, b, args.threads, args.seed) for b in backends}
+        self.ests = {b: load(spec, b, args.threads, args.seed, args.refiner) for b in backends}
         self.frames = make_frames(args.tracks, args.frames, seed=args.seed)
         self.single = [f[0] for f in make_frames(1, 100, seed=args.seed + 1)]
         ids = [f"track{i}" for i in range(args.tracks)]
@@ -160,7 +163,7 @@ def worker_args(args, spec: str) -> list[str]:
     """The command line of a ``--worker`` process for ``spec`` (this run's settings)."""
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--weights", spec,
            "--backends", *args.backends, "--tracks", str(args.tracks), "--frames",
-           str(args.frames), "--seed", str(args.seed)]
+           str(args.frames), "--seed", str(args.seed), "--refiner", args.refiner]
     return cmd + ([] if args.threads is None else ["--threads", str(args.threads)])
 
 
@@ -230,12 +233,15 @@ def main() -> None:
                     choices=BACKENDS, help="the first is the reference of the ratio columns")
     ap.add_argument("--compare-with", metavar="OLD_SRC", default=None,
                     help="the src folder of a frozen copy of the tree to measure side by side")
+    ap.add_argument("--refiner", default="none",
+                    help="placement refiner of the estimators: 'pretrained', a file or 'none'")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
         run_worker(args)
         return
     print(f"torch {torch.__version__}, threads {args.threads}, busy processes {args.busy}, "
+          f"refiner {args.refiner}, "
           f"{time.strftime('%Y-%m-%d %H:%M %Z')}"
           + ("" if args.compare_with is None else f", old tree {args.compare_with}"))
     print(machine_line(), flush=True)

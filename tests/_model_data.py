@@ -36,3 +36,17 @@ def make_dataset(path, n_train: int = 8, n_val: int = 3, frames: int = 12, seed:
               for i in range(n_train)]
     tracks += [box_track(f"val{i:03d}", "val", rng, frames) for i in range(n_val)]
     return write_dataset(path, tracks)
+
+
+def write_checkpoint(path, kind: str, cfg, seed: int = 0) -> str:
+    """A randomly initialised ``kind`` network of ``cfg`` saved as a weights file; its path."""
+    import torch
+
+    from seqshape.model import ShapePoseNet
+
+    torch.manual_seed(seed)
+    net = ShapePoseNet(cfg, recurrent=kind == "sequential")
+    torch.save({"format": "seqshape-checkpoint", "version": 1, "kind": kind,
+                "model_config": cfg.to_dict(), "train_config": {},
+                "state_dict": net.state_dict(), "metrics": {}}, path)
+    return str(path)

@@ -313,3 +313,24 @@ def test_sc_gt_resume_with_the_shipped_weights(root, tmp_path, monkeypatch, caps
     assert main([*cmd, "--checkpoint", "baseline", "--resume"]) == 1
     assert "weights: 'sha256:" in capsys.readouterr().err
     assert labelled == [] and label_cli._ESTIMATOR == {} and _files(out) == before
+
+
+def test_placement_refiner_counts_by_its_content(tmp_path):
+    """``--placement FILE`` adds the refiner file's digest to the recorded weights."""
+    torch = pytest.importorskip("torch")
+    from seqshape.model import placement as P
+
+    torch.manual_seed(0)
+    P.PlacementRefiner(P.build_net()).save(tmp_path / "a.pt")
+    torch.manual_seed(1)
+    P.PlacementRefiner(P.build_net()).save(tmp_path / "b.pt")
+    shutil.copy(tmp_path / "a.pt", tmp_path / "a_copy.pt")
+    net = weights_digest("pretrained")
+    a = weights_digest("pretrained", str(tmp_path / "a.pt"))
+    digest = "sha256:" + hashlib.sha256((tmp_path / "a.pt").read_bytes()).hexdigest()
+    assert a == f"{net} placement {digest}"
+    assert weights_digest("pretrained", str(tmp_path / "a_copy.pt")) == a
+    assert weights_digest("pretrained", str(tmp_path / "b.pt")) != a
+    assert weights_digest("pretrained", "none") == net
+    with pytest.raises(DataError, match="missing.pt"):
+        weights_digest("pretrained", str(tmp_path / "missing.pt"))

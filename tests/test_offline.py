@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from _model_data import box_track, make_dataset
+from _model_data import box_track, make_dataset, write_checkpoint
 
 torch = pytest.importorskip("torch")
 
@@ -222,12 +222,7 @@ def test_bad_arguments_are_config_errors():
 
 
 def _checkpoint(path, kind):
-    torch.manual_seed(0)
-    net = ShapePoseNet(CFG, recurrent=kind == "sequential")
-    torch.save({"format": "seqshape-checkpoint", "version": 1, "kind": kind,
-                "model_config": CFG.to_dict(), "train_config": {},
-                "state_dict": net.state_dict(), "metrics": {}}, path)
-    return str(path)
+    return write_checkpoint(path, kind, CFG)
 
 
 def test_evaluate_offline_end_to_end(tmp_path):

@@ -29,6 +29,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "show": ("show", "plot one track (PNG) and an interactive 3D view (HTML)"),
     "stats": ("stats", "print statistics of a track dataset"),
     "train": ("train", "train the sequential model or the per-frame baseline"),
+    "train-refiner": ("train_refiner", "train the placement refiner on the networks' own "
+                                       "estimates"),
     "evaluate": ("evaluate", "evaluate shape and pose estimates on a dataset's val split"),
     "scenes": ("scenes", "generate camera+LiDAR scenes in the KITTI tracking layout"),
     "show-scene": ("show_scene", "draw one frame of a scene with its amodal ground truth"),

@@ -136,6 +136,9 @@ class LabelConfig:
         :class:`~seqshape.model.Estimator` runs offline; other estimators are stepped.
     offline: the :class:`~seqshape.model.offline.OfflineConfig` of the offline estimates
         (None: its defaults, the measured best).
+    placement: sc-* modes: the estimator's placement refiner
+        (:mod:`seqshape.model.placement`): 'pretrained' (the shipped one), a refiner file, or
+        'none'.
     """
 
     mode: str = "sc-gt"
@@ -162,6 +165,7 @@ class LabelConfig:
     align_config: AlignConfig = field(default_factory=AlignConfig)
     online: bool = False
     offline: OfflineConfig | None = None
+    placement: str = "none"
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -193,12 +197,14 @@ class LabelResult:
     camera: str | None = None
 
 
-def load_estimator(checkpoint: str | None, backend: str = "auto"):
+def load_estimator(checkpoint: str | None, backend: str = "auto", placement: str = "none"):
     """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped sequential
-    one): :meth:`seqshape.model.estimator.Estimator.load`."""
+    one): :meth:`seqshape.model.estimator.Estimator.load`, with the placement refiner
+    ``placement`` (:func:`seqshape.model.placement.load_refiner`)."""
     from seqshape.model.estimator import Estimator  # lazy: torch (modes without a network)
 
-    return Estimator.load("pretrained" if checkpoint is None else checkpoint, backend=backend)
+    return Estimator.load("pretrained" if checkpoint is None else checkpoint, backend=backend,
+                          refiner=placement)
 
 
 class TrackReplay:
@@ -481,7 +487,8 @@ def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict,
     if cfg.mode == "gt-accumulation":
         clouds = [gt_accumulation_clouds(t) for t in tracks]
     else:
-        est = estimator if estimator is not None else load_estimator(cfg.checkpoint, cfg.backend)
+        est = estimator if estimator is not None else load_estimator(cfg.checkpoint, cfg.backend,
+                                                                     cfg.placement)
         est.reset()
         if not cfg.online and _has_network(est):
             est = offline_replay(est, inputs, log, cfg.offline)
@@ -802,14 +809,23 @@ def inference_arithmetic(backend: str) -> str:
     return "int8" if backend == "onnx-int8" else "float32"
 
 
-def weights_digest(checkpoint: str | None) -> str:
+def weights_digest(checkpoint: str | None, placement: str = "none") -> str:
     """``"sha256:<hex>"`` of the weights file that :func:`load_estimator` loads for
     ``checkpoint`` (a path, or a shipped name: "pretrained" / None is the shipped sequential
-    one); :class:`~seqshape.errors.DataError` when there is no such file."""
+    one), followed by ``" placement sha256:<hex>"`` of the placement refiner's file unless
+    ``placement`` is "none"; :class:`~seqshape.errors.DataError` when there is no such file."""
     # lazy: the resolver's module imports torch (modes without a network never call this)
     from seqshape.model.estimator import resolve_weights
+    from seqshape.model.placement import pretrained_refiner_path
 
     path = resolve_weights("pretrained" if checkpoint is None else checkpoint)
+    if placement != "none":
+        extra = Path(placement) if placement != "pretrained" else pretrained_refiner_path()
+        return f"{_file_digest(path)} placement {_file_digest(extra)}"
+    return _file_digest(path)
+
+
+def _file_digest(path) -> str:
     digest = hashlib.sha256()
     try:
         with open(path, "rb") as fh:

@@ -101,6 +101,14 @@ class Track:
             raise ValueError(f"track {self.track_id} has no complete shape")
         return canonical_to_sensor(self.complete, self.poses[t])
 
+    def ego_pose(self, t: int) -> np.ndarray | None:
+        """Frame ``t``'s sensor frame -> the log's fixed frame, ``(4, 4)``, as a user's
+        pipeline knows it: ``meta["ego_poses"]`` when recorded; the identity for a synthetic
+        track without them (its sensor is static); None for a real track without them."""
+        if self.meta.get("ego_poses"):
+            return np.asarray(self.meta["ego_poses"][t], dtype=np.float64)
+        return None if self.meta.get("source") == "real" else np.eye(4)
+
     def slice(self, start: int, stop: int) -> Track:
         """Frames ``start:stop`` as a new Track (arrays shared, not copied)."""
         return Track(self.track_id, self.points[start:stop], self.poses[start:stop],

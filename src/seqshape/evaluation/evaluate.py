@@ -31,6 +31,7 @@ from seqshape.model.boxfit import BoxFitEstimator
 from seqshape.model.engine import BACKENDS
 from seqshape.model.estimator import Estimator
 from seqshape.model.offline import OfflineEstimator
+from seqshape.model.placement import load_refiner
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +61,8 @@ class EvaluateConfig:
         (off: the points alone, and the heading step then never acts; docs/evaluation.md).
     backend: inference backend of both networks (seqshape.model.engine.BACKENDS; 'auto': the
         fastest one that passes its check against PyTorch on this machine; docs/model.md).
+    refiner: placement refiner of both networks (seqshape.model.placement): a refiner file,
+        'pretrained' (the shipped one) or 'none'.
     """
 
     split: str = "auto"
@@ -76,6 +79,7 @@ class EvaluateConfig:
     offline: bool = False
     hints: bool = True
     backend: str = "auto"
+    refiner: str = "none"
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
@@ -164,6 +168,9 @@ def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfi
     box fit when ``cfg.boxfit`` (None: for real datasets)."""
     estimators = {"sequential": load_estimator(checkpoint, "sequential", cfg.backend),
                   "baseline": load_estimator(baseline, "baseline", cfg.backend)}
+    refiner = load_refiner(cfg.refiner)
+    for est in estimators.values():
+        est.refiner = refiner
     if cfg.offline:
         estimators["sequential"] = OfflineEstimator(estimators["sequential"])
     use_boxfit = dataset_is_real(dataset) if cfg.boxfit is None else cfg.boxfit

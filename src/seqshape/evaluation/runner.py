@@ -139,12 +139,7 @@ def track_hints(est, tracks: Sequence[Track], frames: Sequence[int]) -> dict:
 
     if not isinstance(est, Estimator):
         return {}
-    egos = []
-    for tr, t in zip(tracks, frames, strict=True):
-        if tr.meta.get("ego_poses"):
-            egos.append(np.asarray(tr.meta["ego_poses"][t], dtype=np.float64))
-        else:
-            egos.append(None if tr.meta.get("source") == "real" else np.eye(4))
+    egos = [tr.ego_pose(t) for tr, t in zip(tracks, frames, strict=True)]
     return {"classes": [tr.meta.get("class") or None for tr in tracks],
             "ego_poses": egos if any(e is not None for e in egos) else None}
 
@@ -538,8 +533,12 @@ def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int) -> li
 
 
 def _mode(est) -> str:
-    """``"offline"`` for a whole-track estimator of a recurrent model, else ``"online"``."""
-    return "offline" if is_whole_track(est) and getattr(est, "recurrent", False) else "online"
+    """``"offline"`` for a whole-track estimator of a recurrent model, else ``"online"``;
+    ``" + placement refiner"`` after it when the estimator refines its placements."""
+    mode = "offline" if is_whole_track(est) and getattr(est, "recurrent", False) else "online"
+    inner = getattr(est, "estimator", est)
+    return mode + (" + placement refiner" if getattr(inner, "refiner", None) is not None
+                   else "")
 
 
 def is_real(tracks: Sequence[Track]) -> bool:

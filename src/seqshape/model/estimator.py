@@ -52,6 +52,7 @@ import torch
 
 from seqshape.data.windows import points_length, resample_frame
 from seqshape.errors import ConfigError, DataError
+from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
 from seqshape.model.config import ModelConfig
 from seqshape.model.engine import (
     BACKENDS,
@@ -64,6 +65,7 @@ from seqshape.model.engine import (
 )
 from seqshape.model.heading import HeadingConfig, HeadingFilter, wrap_angle
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet
+from seqshape.model.placement import apply_delta, delta, load_refiner
 
 log = logging.getLogger(__name__)
 
@@ -196,6 +198,7 @@ class _TrackState:
     # fast backends: the last estimate (complete, pose, scale), returned again for an empty
     # frame at the same scale (the state does not change, so neither does the estimate)
     last: tuple[np.ndarray, np.ndarray, float] | None = None
+    correction: np.ndarray | None = None  # the placement refiner's last correction (4,)
 
 
 class Estimator:
@@ -225,12 +228,18 @@ class Estimator:
             :data:`~seqshape.model.engine.AUTO_ORDER` installed and passing
             :func:`check_backend` here (a warning names any passed over), else ``"torch"``.
             The loaders default to ``"auto"``, this constructor to the reference.
+        refiner: a :class:`~seqshape.model.placement.PlacementRefiner` applied to every
+            estimate of a frame with points (the frame's points re-read in the estimated box
+            frame; docs/model.md, "Placement refinement"), before the heading step; None: the
+            network's estimate as it is. An attribute: set it after loading too.
     """
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None, seed: int = 0,
                  metrics: dict | None = None, heading: HeadingConfig | None = None,
-                 frame_period: float = DEFAULT_FRAME_PERIOD, backend: str = "torch"):
+                 frame_period: float = DEFAULT_FRAME_PERIOD, backend: str = "torch",
+                 refiner: Any = None):
         self.model = model.eval()
+        self.refiner = refiner
         if not (np.isfinite(frame_period) and frame_period > 0):
             raise ConfigError(f"frame_period must be a positive number of seconds, got "
                               f"{frame_period!r}")
@@ -259,27 +268,32 @@ class Estimator:
                         threads: int | None = None, seed: int = 0,
                         heading: HeadingConfig | None = None,
                         frame_period: float = DEFAULT_FRAME_PERIOD,
-                        backend: str = "auto") -> Estimator:
-        """Load a training checkpoint or an exported ``model.pt`` (CPU inference)."""
+                        backend: str = "auto", refiner: Any = "none") -> Estimator:
+        """Load a training checkpoint or an exported ``model.pt`` (CPU inference).
+        ``refiner``: the placement refiner, a :class:`~seqshape.model.placement.
+        PlacementRefiner` or a spec of :func:`~seqshape.model.placement.load_refiner`
+        ("pretrained", a refiner file, "none")."""
         if device != "cpu":
             raise ConfigError(f"Estimator runs on the CPU; got device {device!r}")
         payload = read_model_file(path)
         return cls(build_model(payload, path), threads, seed, payload.get("metrics"), heading,
-                   frame_period, backend)
+                   frame_period, backend, _refiner(refiner))
 
     @classmethod
     def from_pretrained(cls, kind: str = "sequential", threads: int | None = None,
                         seed: int = 0, heading: HeadingConfig | None = None,
                         frame_period: float = DEFAULT_FRAME_PERIOD,
-                        backend: str = "auto") -> Estimator:
+                        backend: str = "auto", refiner: Any = "none") -> Estimator:
         """The shipped weights ``seqshape/pretrained/<kind>.pt``."""
         return cls.from_checkpoint(pretrained_path(kind), threads=threads, seed=seed,
-                                   heading=heading, frame_period=frame_period, backend=backend)
+                                   heading=heading, frame_period=frame_period, backend=backend,
+                                   refiner=refiner)
 
     @classmethod
     def load(cls, spec: str | Path, *, kind: str | None = None, threads: int | None = None,
              device: str = "cpu", seed: int = 0, heading: HeadingConfig | None = None,
-             frame_period: float = DEFAULT_FRAME_PERIOD, backend: str = "auto") -> Estimator:
+             frame_period: float = DEFAULT_FRAME_PERIOD, backend: str = "auto",
+             refiner: Any = "none") -> Estimator:
         """The estimator named by ``spec``: a shipped name or a weights path.
 
         ``spec``: ``"sequential"`` / ``"baseline"`` (the shipped weights), ``"pretrained"``
@@ -293,7 +307,8 @@ class Estimator:
         'baseline'
         """
         path = resolve_weights(spec, kind or "sequential")
-        est = cls.from_checkpoint(path, device, threads, seed, heading, frame_period, backend)
+        est = cls.from_checkpoint(path, device, threads, seed, heading, frame_period, backend,
+                                  refiner)
         if kind is not None and est.kind != kind:
             raise ConfigError(f"{spec} holds a {est.kind} model, not a {kind} one")
         return est
@@ -447,6 +462,22 @@ class Estimator:
             st.hidden, st.mean, st.seen, st.gap = hidden[j], mean[j], bool(seen[j]), float(gap[j])
             st.last = (complete[j], pose[j], float(scale[i]))
 
+    def _refine(self, states: list[_TrackState], frames: list[np.ndarray],
+                complete: list[np.ndarray], pose: list[np.ndarray]
+                ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The placement refiner over one step's tracks (one batched pass); an empty frame's
+        carried estimate gets its track's last correction."""
+        c, p = np.stack(complete), np.stack(pose)
+        lasts = [st.correction for st in states]
+        new_c, new_p, _ = self.refiner.refine_sequence(frames, c, p)
+        for i, st in enumerate(states):
+            if len(frames[i]) and np.all(np.isfinite(new_p[i])):
+                st.correction = delta(p[i:i + 1], new_p[i:i + 1])[0]
+            elif not len(frames[i]) and lasts[i] is not None and st.seen:
+                new_p[i] = apply_delta(p[i], lasts[i])
+                new_c[i] = canonical_to_sensor(sensor_to_canonical(c[i], p[i]), new_p[i])
+        return list(new_c), list(new_p)
+
     def _check(self, name: str) -> bool:
         """``backend="auto"``'s test of backend ``name`` (its engine is kept when it passes);
         raises :class:`~seqshape.errors.MissingDependencyError` when its runtime is missing."""
@@ -513,6 +544,8 @@ class Estimator:
         dts = self._dts(states, timestamps) if self.model.motion else None
         run = self._run_torch if self._engine is None else self._run_engine
         complete, pose = run(states, frames, counts, scale, dts)
+        if self.refiner is not None:
+            complete, pose = self._refine(states, frames, complete, pose)
         result = []
         for i, tid in enumerate(track_ids):
             result.append(Estimate(tid, complete[i], pose[i], len(frames[i])))
@@ -522,6 +555,13 @@ class Estimator:
         if ego_poses is not None or self.heading.active_without_poses:
             self._fix_headings(result, states, ego_poses, frames, classes)
         return result
+
+
+def _refiner(spec: Any):
+    """A refiner object as it is, or the refiner a spec names (:func:`load_refiner`)."""
+    if spec is None or isinstance(spec, (str, Path)):
+        return load_refiner(spec)
+    return spec
 
 
 def check_backend(fast: Estimator) -> bool:

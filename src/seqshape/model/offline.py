@@ -192,7 +192,7 @@ def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
     model = estimator.model
     for p, first in zip(live, _run_many(model, [_Pass(p.frames, p.scales, p.motion)
                                                 for p in live], chunk_frames), strict=True):
-        p.passes["online"] = first
+        p.passes["online"] = _refined(estimator, p.frames, first)
     offline = [p for p in live if mode == "offline" and model.recurrent and p.counts.any()]
     jobs, owners = [], []
     for p in offline:
@@ -205,8 +205,9 @@ def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
         if "bidirectional" in (cfg.shape, cfg.pose):
             jobs.append(_backward_pass(estimator, p))
             owners.append((p, "backward"))
-    for (p, key), out in zip(owners, _run_many(model, jobs, chunk_frames), strict=True):
-        p.passes[key] = out
+    for (p, key), job, out in zip(owners, jobs, _run_many(model, jobs, chunk_frames),
+                                  strict=True):
+        p.passes[key] = _refined(estimator, job.frames, out)
     return [_assemble(estimator, p, cfg, p in offline) if p.frames else [] for p in preps]
 
 
@@ -469,6 +470,18 @@ def chunk_tracks(lengths: Sequence[int], chunk_frames: int) -> list[list[int]]:
         else:
             chunks.append([i])
     return chunks
+
+
+def _refined(estimator, frames: list[np.ndarray], out: dict) -> dict:
+    """A pass's output with the estimator's placement refiner applied frame by frame (as
+    :meth:`Estimator.step` applies it; unchanged without a refiner)."""
+    refiner = getattr(estimator, "refiner", None)
+    if refiner is None:
+        return out
+    out = dict(out)
+    out["complete"], out["pose"], _ = refiner.refine_sequence(frames, out["complete"],
+                                                              out["pose"])
+    return out
 
 
 def _run_chunk(model, passes: list[_Pass]) -> list[dict]:

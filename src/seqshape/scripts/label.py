@@ -64,7 +64,7 @@ from seqshape.scripts._log_args import add_log_arguments, open_args_log
 
 HELP = "produce amodal mask labels (KINS JSON) for a driving log with cameras"
 FIELDS = ["mode", "checkpoint", "backend", "refine", "order", "alpha", "instances", "polygons", "fit_box",
-          "fit_box_below", "trim", "observed", "mask_fallback", "align", "online"]
+          "fit_box_below", "trim", "observed", "mask_fallback", "align", "online", "placement"]
 
 __all__ = ["HELP", "add_arguments", "cameras_of", "open_args_log", "run"]
 
@@ -135,12 +135,12 @@ def sequences_of(args) -> list[str] | None:
 _ESTIMATOR: dict = {}  # the estimator of this process (sc-* modes), loaded once
 
 
-def _estimator(mode: str, checkpoint: str | None, backend: str):
+def _estimator(mode: str, checkpoint: str | None, backend: str, placement: str = "none"):
     """This process's estimator (None for gt-accumulation), loaded at its first use."""
     if mode == "gt-accumulation":
         return None
     if "est" not in _ESTIMATOR:
-        _ESTIMATOR["est"] = load_estimator(checkpoint, backend)
+        _ESTIMATOR["est"] = load_estimator(checkpoint, backend, placement)
     return _ESTIMATOR["est"]
 
 
@@ -166,7 +166,8 @@ def _settings(args, log, cfg: LabelConfig, camera: str, weights: str | None) -> 
 
 def _weights(args) -> str | None:
     """The digest of the estimator's weights (None: gt-accumulation runs no network)."""
-    return None if args.mode == "gt-accumulation" else weights_digest(args.checkpoint)
+    return None if args.mode == "gt-accumulation" else weights_digest(args.checkpoint,
+                                                                      args.placement)
 
 
 def _write_results(args, name: str | None, log, cfg: LabelConfig, results: dict,
@@ -290,7 +291,7 @@ def _start_one(opened: tuple, pool=None) -> tuple:
     args, name, log, cameras, cfg, tasks = opened
     prepared = {cam: task.get() for cam, task in tasks.items()}
     pending = start_labels(log, cfg, cameras, _estimator(args.mode, args.checkpoint,
-                                                         args.backend),
+                                                         args.backend, args.placement),
                            pool=pool, keep_masks=args.overlays is not None, prepared=prepared)
     return args, name, log, cfg, pending
 

@@ -1,0 +1,423 @@
+"""Placement refinement: a second look at a frame's points in the estimate's own box frame.
+
+The network regresses a vehicle's centre from one max-pooled feature of the demeaned points;
+where the points sit on the vehicle (which faces are seen, how far the near face lies from the
+centre) reaches the centre only through that global feature. A box fit anchors the visible
+faces and out-places it on dense frames (docs/results.md, "Why real cars are placed too far
+from the sensor"). The refiner is the two-stage detectors' answer (a proposal's points in its
+canonical frame, PointRCNN / PV-RCNN style): the frame's points are moved into the estimated
+box frame (centre at the origin, heading along +x), a small PointNet reads them with the
+estimate's extents and the direction of the sensor in that frame, and regresses a correction
+``(dx, dy, dz)`` of the centre in the box frame and ``dyaw`` of the heading axis (modulo pi:
+which end is the front stays the estimator's and the heading step's business). The placed
+complete shape moves rigidly with the pose.
+
+Inputs (:func:`refine_inputs`, one function for training and inference): up to ``n`` points
+(a seeded random subset) in the box frame divided by the scale ``s = clip(L / SCALE_REF, 1,
+SCALE_MAX)`` of the estimated length L, so a bus reaches the network at a car's scale, and
+the conditioning vector :data:`COND_FIELDS`. Output corrections are multiplied back by s.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from seqshape.errors import ConfigError, DataError
+
+SCALE_REF = 4.5  # m: an estimate up to this long is not rescaled
+SCALE_MAX = 4.0
+NUM_POINTS = 256
+WIDTH = 128  # the second PointNet's width
+#: The conditioning vector's entries, in order.
+COND_FIELDS = ("length/s", "width/s", "height/s", "sensor_dir_x", "sensor_dir_y",
+               "log_range/4", "log_points/7", "s/4")
+FORMAT = "seqshape-placement-refiner"
+
+
+def _torch():
+    import torch  # lazy: the module is importable without torch for its numpy helpers
+
+    return torch
+
+
+def scale_of(length: float) -> float:
+    """The input scale for an estimated vehicle length (m)."""
+    if not np.isfinite(length):
+        return 1.0
+    return float(np.clip(length / SCALE_REF, 1.0, SCALE_MAX))
+
+
+def box_frame(points: np.ndarray, pose) -> np.ndarray:
+    """``points (N, 3)`` (sensor frame) in the box frame of ``pose`` (x, y, z, yaw)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    c, s = math.cos(float(pose[3])), math.sin(float(pose[3]))
+    d = pts - np.asarray(pose[:3], dtype=np.float64)
+    return np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]
+
+
+def refine_inputs(points: np.ndarray, pose, extents, rng: np.random.Generator,
+                  n: int = NUM_POINTS) -> tuple[np.ndarray, int, np.ndarray, float]:
+    """The refiner's input for one frame.
+
+    Args:
+        points: (N, 3) the frame's points, sensor frame (N >= 1).
+        pose: the estimate (x, y, z, yaw).
+        extents: the estimate's (length, width, height), m.
+        rng: draws the subset when N > n.
+        n: points fed.
+
+    Returns ``(xyz (n, 3) float32, count, cond (len(COND_FIELDS),) float32, s)``: rows past
+    ``count`` repeat the real ones cyclically (the max-pool then sees each real point, exactly
+    as without padding).
+    """
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        raise ValueError("refine_inputs needs at least one point")
+    if len(pts) > n:
+        pts = pts[rng.choice(len(pts), n, replace=False)]
+    s = scale_of(float(extents[0]))
+    q = box_frame(pts, pose) / s
+    count = len(q)
+    xyz = q[np.arange(n) % count].astype(np.float32)
+    sensor = box_frame(np.zeros((1, 3)), pose)[0, :2]
+    rng_m = float(np.hypot(*sensor))
+    direction = sensor / max(rng_m, 1e-6)
+    ext = np.nan_to_num(np.asarray(extents, dtype=np.float64)[:3], nan=0.0) / s
+    cond = np.array([ext[0], ext[1], ext[2], direction[0], direction[1],
+                     math.log1p(rng_m) / 4.0, math.log1p(len(points)) / 7.0, s / 4.0],
+                    dtype=np.float32)
+    return xyz, count, cond, s
+
+
+def refine_inputs_batch(points: Sequence[np.ndarray], poses: np.ndarray, extents: np.ndarray,
+                        seeds: Sequence[int], n: int = NUM_POINTS
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`refine_inputs` of many frames at once (frame i's subset drawn with
+    ``np.random.default_rng(seeds[i])``): ``(xyz (B, n, 3) float32, cond (B, C) float32,
+    scales (B,))``, equal to stacking the single-frame inputs (tested)."""
+    b = len(points)
+    gathered = np.empty((b, n, 3), dtype=np.float64)
+    counts = np.empty(b, dtype=np.int64)
+    for i, p in enumerate(points):
+        pts = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        if len(pts) == 0:
+            raise ValueError("refine_inputs needs at least one point")
+        counts[i] = len(pts)
+        if len(pts) > n:
+            pts = pts[np.random.default_rng(seeds[i]).choice(len(pts), n, replace=False)]
+        gathered[i] = pts[np.arange(n) % len(pts)]
+    poses = np.asarray(poses, dtype=np.float64).reshape(b, 4)
+    ext = np.asarray(extents, dtype=np.float64).reshape(b, -1)[:, :3]
+    length = ext[:, 0]
+    scales = np.where(np.isfinite(length), np.clip(length / SCALE_REF, 1.0, SCALE_MAX), 1.0)
+    c, s = np.cos(poses[:, 3])[:, None], np.sin(poses[:, 3])[:, None]
+    d = gathered - poses[:, None, :3]
+    q = np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1], d[..., 2]],
+                 axis=-1)
+    xyz = (q / scales[:, None, None]).astype(np.float32)
+    o = -poses[:, :3]
+    sensor = np.c_[c[:, 0] * o[:, 0] + s[:, 0] * o[:, 1], -s[:, 0] * o[:, 0] + c[:, 0] * o[:, 1]]
+    rng_m = np.hypot(sensor[:, 0], sensor[:, 1])
+    direction = sensor / np.maximum(rng_m, 1e-6)[:, None]
+    e = np.nan_to_num(ext, nan=0.0) / scales[:, None]
+    cond = np.c_[e, direction, np.log1p(rng_m) / 4.0, np.log1p(counts) / 7.0,
+                 scales / 4.0].astype(np.float32)
+    return xyz, cond, scales
+
+
+def _net_class():
+    torch = _torch()
+    from torch import nn
+
+    from seqshape.model.network import mlp
+
+    class RefinerNet(nn.Module):
+        """PointNet (3-64-64 / 128-W-W, max-pools) + conditioning -> (dx, dy, dz, dyaw).
+
+        The last layer starts at zero: an untrained refiner leaves the estimate as it is."""
+
+        def __init__(self, width: int = WIDTH):
+            super().__init__()
+            self.width = int(width)
+            self.mlp1 = mlp([3, 64, 64], point_wise=True)
+            self.mlp2 = mlp([128, width, width], point_wise=True)
+            self.head = mlp([width + len(COND_FIELDS), 256, 128, 4])
+            nn.init.zeros_(self.head[-1].weight)
+            nn.init.zeros_(self.head[-1].bias)
+
+        def forward(self, xyz: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+            x = self.mlp1(xyz)  # (B, n, 128)
+            g = x.max(dim=1, keepdim=True).values.expand_as(x)
+            y = self.mlp2(torch.cat([x, g], dim=-1)).max(dim=1).values
+            return self.head(torch.cat([y, cond], dim=-1))
+
+    return RefinerNet
+
+
+def build_net(width: int = WIDTH):
+    """A fresh :class:`RefinerNet` (the identity refinement)."""
+    return _net_class()(width)
+
+
+@dataclass(frozen=True)
+class RefinerConfig:
+    """How the refiner is applied: ``iterations`` passes (each re-reads the points in the
+    corrected frame), ``min_points`` below which a frame is left alone, ``max_shift`` (m) and
+    ``max_turn`` (rad) clip each pass's correction."""
+
+    iterations: int = 1
+    min_points: int = 1
+    max_shift: float = 1.5
+    max_turn: float = 0.35
+
+    def __post_init__(self):
+        if self.iterations < 0:
+            raise ConfigError(f"RefinerConfig.iterations must be >= 0, got {self.iterations}")
+
+
+class PlacementRefiner:
+    """Applies a trained :class:`RefinerNet` to estimates (:meth:`refine`)."""
+
+    def __init__(self, net, config: RefinerConfig | None = None, seed: int = 0,
+                 meta: dict | None = None):
+        self.net = net.eval()
+        self.config = config or RefinerConfig()
+        self.seed = int(seed)
+        self.meta = dict(meta or {})
+        self._layers: list[tuple[np.ndarray, np.ndarray]] | None = None
+
+    @classmethod
+    def load(cls, path: str | Path, config: RefinerConfig | None = None) -> PlacementRefiner:
+        torch = _torch()
+        path = Path(path)
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+        except FileNotFoundError:
+            raise DataError(path, "no such refiner file") from None
+        except Exception as exc:  # noqa: BLE001 (a corrupt or foreign file)
+            raise DataError(path, f"not a readable refiner file ({exc})") from None
+        if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+            raise DataError(path, f"not a {FORMAT} file")
+        net = build_net(int(payload.get("width", WIDTH)))
+        try:
+            net.load_state_dict(payload["state_dict"])
+        except (KeyError, RuntimeError) as exc:
+            raise DataError(path, f"refiner weights do not fit ({exc})") from None
+        return cls(net, config, meta=payload.get("meta"))
+
+    def save(self, path: str | Path) -> None:
+        torch = _torch()
+        import io
+
+        from seqshape._io import atomic_write_bytes
+
+        buf = io.BytesIO()
+        torch.save({"format": FORMAT, "width": self.net.width,
+                    "state_dict": self.net.state_dict(), "meta": self.meta}, buf)
+        atomic_write_bytes(Path(path), buf.getvalue())
+
+    def corrections(self, points: Sequence[np.ndarray], poses: np.ndarray,
+                    extents: np.ndarray, seeds: Sequence[int],
+                    reference: bool = False) -> np.ndarray:
+        """``(F, 4)`` corrections ``(dx, dy, dz, dyaw)`` in each pose's box frame (m, rad).
+
+        The network runs in numpy (:meth:`forward`: a few small matrix products, no framework
+        overhead on a one-track step); ``reference``: in PyTorch, the module itself."""
+        xyz, cond, scales = refine_inputs_batch(points, poses, extents, seeds)
+        if reference:
+            torch = _torch()
+            with torch.no_grad():
+                out = self.net(torch.from_numpy(xyz), torch.from_numpy(cond)).double().numpy()
+        else:
+            out = self.forward(xyz, cond).astype(np.float64)
+        out[:, :3] *= scales[:, None]
+        return out
+
+    def forward(self, xyz: np.ndarray, cond: np.ndarray) -> np.ndarray:
+        """:class:`RefinerNet`'s forward pass in numpy float32: ``xyz (B, n, 3)``, ``cond
+        (B, C)`` -> ``(B, 4)`` (equal to the module's within float32 rounding; tested)."""
+        if self._layers is None:
+            self._layers = [(m.weight.detach().numpy().T.astype(np.float32).copy(),
+                             m.bias.detach().numpy().astype(np.float32).copy())
+                            for m in (*self.net.mlp1[::2], *self.net.mlp2[::2],
+                                      *self.net.head[::2])]
+        (w1, b1), (w2, b2), (w3, b3), (w4, b4), *head = self._layers
+        b, n, _ = xyz.shape
+        x = np.maximum(xyz.reshape(b * n, 3) @ w1 + b1, 0.0) @ w2 + b2  # (B n, 64)
+        c = x.shape[1]
+        g = x.reshape(b, n, c).max(axis=1)  # (B, 64)
+        # mlp2's first layer on [x, g]: the global half once per frame
+        y = (x @ w3[:c]).reshape(b, n, -1) + (g @ w3[c:] + b3)[:, None, :]
+        y = np.maximum(y, 0.0).reshape(b * n, -1) @ w4 + b4
+        h = np.concatenate([y.reshape(b, n, -1).max(axis=1), cond], axis=1)
+        for i, (w, bias) in enumerate(head):
+            h = h @ w + bias
+            if i < len(head) - 1:
+                h = np.maximum(h, 0.0)
+        return h
+
+    def refine_poses(self, points: Sequence[np.ndarray], poses: np.ndarray,
+                     extents: np.ndarray, seeds: Sequence[int] | None = None) -> np.ndarray:
+        """Refined copies of ``poses (F, 4)`` (sensor frame) from each frame's points; frames
+        with fewer than ``min_points`` points or a non-finite pose are returned unchanged."""
+        cfg = self.config
+        poses = np.array(poses, dtype=np.float64).reshape(-1, 4)
+        seeds = list(range(len(poses))) if seeds is None else list(seeds)
+        ok = [i for i, p in enumerate(points) if len(p) >= max(cfg.min_points, 1)
+              and np.all(np.isfinite(poses[i])) and np.all(np.isfinite(extents[i][:1]))]
+        for it in range(cfg.iterations):
+            if not ok:
+                break
+            d = self.corrections([points[i] for i in ok], poses[ok], np.asarray(extents)[ok],
+                                 [self.seed + 1000003 * it + seeds[i] for i in ok])
+            shift = np.clip(d[:, :3], -cfg.max_shift, cfg.max_shift)
+            turn = np.clip(d[:, 3], -cfg.max_turn, cfg.max_turn)
+            yaw = poses[ok, 3]
+            c, s = np.cos(yaw), np.sin(yaw)
+            poses[ok, 0] += c * shift[:, 0] - s * shift[:, 1]
+            poses[ok, 1] += s * shift[:, 0] + c * shift[:, 1]
+            poses[ok, 2] += shift[:, 2]
+            poses[ok, 3] = yaw + turn
+        return poses
+
+    def refine_sequence(self, frames: Sequence[np.ndarray], complete: np.ndarray,
+                        poses: np.ndarray, last: np.ndarray | None = None,
+                        seeds: Sequence[int] | None = None
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Refine the estimates of consecutive frames of one track (or of one frame each of
+        many tracks, with ``last`` None).
+
+        Args:
+            frames: per frame the points the network got (sensor frame; may be empty).
+            complete: (F, K, 3) the placed complete shapes; poses: (F, 4) their poses.
+            last: the correction (:func:`delta`) of the frame before, carried over empty
+                frames (None: empty frames before the first refined one are left alone).
+            seeds: per frame, the seed of the points' subset (when a frame has more than
+                :data:`NUM_POINTS`).
+
+        Returns ``(complete, poses, last)``: new arrays (the shapes moved rigidly with their
+        poses) and the correction of the last frame with points. A frame with points is
+        refined; an empty one (the estimate carried forward from the state) gets the last
+        correction, as the estimate it repeats did.
+        """
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+        complete = np.asarray(complete)
+        out_c, out_p = np.array(complete, copy=True), poses.copy()
+        idx = [i for i, f in enumerate(frames) if len(f) >= max(self.config.min_points, 1)
+               and np.all(np.isfinite(poses[i]))]
+        corr = np.full((len(poses), 4), np.nan)
+        if idx:
+            ext = extents_batch(complete[idx], poses[idx])
+            new = self.refine_poses([frames[i] for i in idx], poses[idx], ext,
+                                    None if seeds is None else [seeds[i] for i in idx])
+            corr[idx] = delta(poses[idx], new)
+        moved = []
+        for i in range(len(poses)):
+            if np.isfinite(corr[i, 0]):
+                last = corr[i]
+            elif len(frames[i]) or last is None or not np.all(np.isfinite(poses[i])):
+                continue  # a frame with too few points, or nothing to carry
+            if not np.any(last):
+                continue  # no correction: the estimate as it is, bit for bit
+            out_p[i] = apply_delta(poses[i], last)
+            moved.append(i)
+        if moved:
+            out_c[moved] = _move_batch(complete[moved], poses[moved],
+                                       out_p[moved]).astype(complete.dtype)
+        return out_c, out_p, last
+
+
+def extents_of(complete: np.ndarray, pose) -> np.ndarray:
+    """``(length, width, height)`` of a placed complete shape in its pose's box frame: the
+    spread between the 1st and 99th percentiles (as
+    :func:`seqshape.evaluation.runner.estimate_extents`); NaN without points."""
+    pts = np.asarray(complete, dtype=np.float64).reshape(-1, 3)
+    if not len(pts):
+        return np.full(3, np.nan)
+    lo, hi = np.percentile(box_frame(pts, pose), [1, 99], axis=0)
+    return hi - lo
+
+
+def extents_batch(complete: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """:func:`extents_of` of ``complete (B, K, 3)`` placed with ``poses (B, 4)``: ``(B, 3)``."""
+    complete = np.asarray(complete, dtype=np.float64)
+    if complete.shape[1] == 0:
+        return np.full((len(complete), 3), np.nan)
+    lo, hi = np.percentile(_to_box(complete, poses), [1, 99], axis=1)
+    return hi - lo
+
+
+def _to_box(points: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """``points (B, K, 3)`` in the box frames of ``poses (B, 4)``, as :func:`box_frame`."""
+    poses = np.asarray(poses, dtype=np.float64)
+    c, s = np.cos(poses[:, 3])[:, None], np.sin(poses[:, 3])[:, None]
+    d = points - poses[:, None, :3]
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1], d[..., 2]],
+                    axis=-1)
+
+
+def _move_batch(points: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """``points (B, K, 3)`` placed with poses ``old (B, 4)`` re-placed with ``new`` (each
+    cloud moved rigidly, as :func:`_move`)."""
+    q = _to_box(np.asarray(points, dtype=np.float64), old)
+    c, s = np.cos(new[:, 3])[:, None], np.sin(new[:, 3])[:, None]
+    return np.stack([c * q[..., 0] - s * q[..., 1] + new[:, None, 0],
+                     s * q[..., 0] + c * q[..., 1] + new[:, None, 1],
+                     q[..., 2] + new[:, None, 2]], axis=-1)
+
+
+def delta(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """``(F, 4)``: pose ``new`` relative to pose ``old`` (the centre's move in ``old``'s box
+    frame, and the turn), so that ``apply_delta(old, delta(old, new)) == new``."""
+    old = np.asarray(old, dtype=np.float64).reshape(-1, 4)
+    new = np.asarray(new, dtype=np.float64).reshape(-1, 4)
+    c, s = np.cos(old[:, 3]), np.sin(old[:, 3])
+    d = new[:, :3] - old[:, :3]
+    return np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2],
+                 new[:, 3] - old[:, 3]]
+
+
+def apply_delta(pose, d) -> np.ndarray:
+    """Pose ``pose (4,)`` moved by a correction ``d (4,)`` of :func:`delta`."""
+    pose = np.asarray(pose, dtype=np.float64)
+    c, s = math.cos(pose[3]), math.sin(pose[3])
+    return np.array([pose[0] + c * d[0] - s * d[1], pose[1] + s * d[0] + c * d[1],
+                     pose[2] + d[2], pose[3] + d[3]])
+
+
+def pretrained_refiner_path() -> Path:
+    """The shipped refiner's file."""
+    return Path(__file__).resolve().parent.parent / "pretrained" / "refiner.pt"
+
+
+def load_refiner(spec: str | Path | None, config: RefinerConfig | None = None
+                 ) -> PlacementRefiner | None:
+    """The refiner named by ``spec``: ``"none"`` / None (no refinement), ``"pretrained"`` (the
+    shipped file) or the path of a refiner file."""
+    if spec is None or str(spec) == "none":
+        return None
+    path = pretrained_refiner_path() if str(spec) == "pretrained" else Path(spec)
+    return PlacementRefiner.load(path, config)
+
+
+def _move(points: np.ndarray, old, new) -> np.ndarray:
+    """Points placed with pose ``old`` re-placed with pose ``new`` (the same canonical cloud)."""
+    from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+
+    return canonical_to_sensor(sensor_to_canonical(points, old), new)
+
+
+def targets(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Training targets ``(F, 4)``: the true centre in each estimate's box frame and the yaw
+    correction of the heading axis, wrapped to [-pi/2, pi/2)."""
+    est = np.asarray(est, dtype=np.float64).reshape(-1, 4)
+    true = np.asarray(true, dtype=np.float64).reshape(-1, 4)
+    c, s = np.cos(est[:, 3]), np.sin(est[:, 3])
+    d = true[:, :3] - est[:, :3]
+    dyaw = (true[:, 3] - est[:, 3] + math.pi / 2) % math.pi - math.pi / 2
+    return np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2], dyaw]
