@@ -423,7 +423,7 @@ def main(argv=None) -> int:
                    help="sc-seg: move only vehicles with fewer own LiDAR returns (0: all)")
     p.add_argument("--align-min-inside", type=float, default=AlignConfig.min_inside,
                    help="sc-seg: share of a vehicle's own returns kept inside its moved mask")
-    p.add_argument("--placement", default="none",
+    p.add_argument("--placement", default="pretrained",
                    help="sc-*: the estimator's placement refiner (seqshape label --placement: "
                         "'pretrained', a refiner file or 'none')")
     p.add_argument("--order", default="pixel", choices=["pixel", "median"])

@@ -15,7 +15,7 @@ only) and prints the same tables after, on held-out vehicles (``--split-by track
 
     python benchmarks/bm_realdata.py --dataset av2 --root ../shared/realdata/av2/sensor/val
     python benchmarks/bm_realdata.py --dataset av2 --root ROOT --finetune-steps 300
-    python benchmarks/bm_realdata.py --dataset av2 --root ROOT --refiner pretrained
+    python benchmarks/bm_realdata.py --dataset av2 --root ROOT --refiner none  # the networks alone
 
 Without ``--root`` there is nothing to measure: the script says so and exits 0 (real data is
 never part of the repository). Timing is not the point here; ``bm_tracks.py`` times extraction.
@@ -60,7 +60,7 @@ def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> No
 
 
 def evaluate(data: Path, out: Path, checkpoint: str, split: str,
-             baseline: str = "pretrained", refiner: str = "none") -> dict:
+             baseline: str = "pretrained", refiner: str = "pretrained") -> dict:
     if _quiet(["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
                "--baseline", baseline, "--refiner", refiner,
                "--split", split, "--workers", "1", "--emd-every", "0", "--view", "none"]) != 0:
@@ -109,7 +109,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=None, help="work folder (default: temporary)")
     ap.add_argument("--checkpoint", default="pretrained", help="sequential model to evaluate")
     ap.add_argument("--baseline", default="pretrained", help="baseline model to evaluate")
-    ap.add_argument("--refiner", default="none",
+    ap.add_argument("--refiner", default="pretrained",
                     help="placement refiner of both networks: a file, 'pretrained' or 'none'")
     ap.add_argument("--finetune-steps", type=int, default=0,
                     help="also fine-tune the sequential model this many stage-3 steps on the "
@@ -134,7 +134,8 @@ def main() -> int:
             sys.exit("fine-tuning failed")
         for split in ("val", "all"):
             for name, ckpt in (("before", args.checkpoint), ("after", str(run / "model.pt"))):
-                m = evaluate(work / "ft_tracks", work / f"ft_eval_{split}_{name}", ckpt, split)
+                m = evaluate(work / "ft_tracks", work / f"ft_eval_{split}_{name}", ckpt, split,
+                             refiner=args.refiner)
                 tables(m, f"fine-tuning {name}, {'held-out vehicles' if split == 'val' else 'all vehicles (as the paper: the data to label)'}")
     print(f"\nwork folder: {work}")
     return 0

@@ -21,8 +21,9 @@ from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 
 # options added since that release (issue 17: inference backends, labelling workers;
 # label --resume)
-ADDED = {"label": {"backend": "auto", "workers": 1, "resume": False, "placement": "none"},
-         "evaluate": {"backend": "auto", "refiner": "none"}}
+ADDED = {"label": {"backend": "auto", "workers": 1, "resume": False,
+                   "placement": "pretrained"},
+         "evaluate": {"backend": "auto", "refiner": "pretrained"}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
 # (33229e9), plus ADDED; paths as strings

@@ -301,7 +301,8 @@ def test_sc_gt_resume_with_the_shipped_weights(root, tmp_path, monkeypatch, caps
     monkeypatch.setattr(label_cli, "_ESTIMATOR", {})  # this process's estimator: ours
     assert main(cmd) == 0
     recorded = read_label_settings(out / "0000.json")
-    assert recorded["weights"] == weights_digest("pretrained")
+    assert recorded["weights"] == weights_digest("pretrained", "pretrained")
+    assert recorded["placement"] == "pretrained"
     before = _files(out)
     capsys.readouterr()
     labelled = _count_labelled(monkeypatch)

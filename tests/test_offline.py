@@ -236,7 +236,8 @@ def test_evaluate_offline_end_to_end(tmp_path):
         out = tmp_path / ("off" if flag else "on")
         assert main(["evaluate", "--data", str(data.path), "--checkpoint", seq, "--baseline",
                      base, "--out", str(out), "--emd-every", "2", "--emd-points", "32",
-                     "--workers", "0", "--view", "auto" if flag else "none", *flag]) == 0
+                     "--workers", "0", "--view", "auto" if flag else "none", "--refiner", "none",
+                     *flag]) == 0
         runs[bool(flag)] = json.loads((out / "metrics.json").read_text())
     assert (tmp_path / "off" / "track_view.html").stat().st_size > 0
     assert runs[True]["settings"]["modes"] == {"sequential": "offline", "baseline": "online"}

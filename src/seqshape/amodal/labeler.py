@@ -138,7 +138,7 @@ class LabelConfig:
         (None: its defaults, the measured best).
     placement: sc-* modes: the estimator's placement refiner
         (:mod:`seqshape.model.placement`): 'pretrained' (the shipped one), a refiner file, or
-        'none'.
+        'none'. It moves sc-seg's shapes (sc-gt places them at the ground-truth boxes).
     """
 
     mode: str = "sc-gt"
@@ -165,7 +165,7 @@ class LabelConfig:
     align_config: AlignConfig = field(default_factory=AlignConfig)
     online: bool = False
     offline: OfflineConfig | None = None
-    placement: str = "none"
+    placement: str = "pretrained"
 
     def __post_init__(self):
         if self.mode not in MODES:
@@ -197,7 +197,8 @@ class LabelResult:
     camera: str | None = None
 
 
-def load_estimator(checkpoint: str | None, backend: str = "auto", placement: str = "none"):
+def load_estimator(checkpoint: str | None, backend: str = "auto",
+                   placement: str = "pretrained"):
     """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped sequential
     one): :meth:`seqshape.model.estimator.Estimator.load`, with the placement refiner
     ``placement`` (:func:`seqshape.model.placement.load_refiner`)."""

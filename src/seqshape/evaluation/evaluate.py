@@ -61,8 +61,9 @@ class EvaluateConfig:
         (off: the points alone, and the heading step then never acts; docs/evaluation.md).
     backend: inference backend of both networks (seqshape.model.engine.BACKENDS; 'auto': the
         fastest one that passes its check against PyTorch on this machine; docs/model.md).
-    refiner: placement refiner of both networks (seqshape.model.placement): a refiner file,
-        'pretrained' (the shipped one) or 'none'.
+    refiner: placement refiner of both networks (seqshape.model.placement): 'pretrained' (the
+        shipped one, trained on the shipped networks' estimates), a refiner file, or 'none' (the
+        networks' own placement).
     """
 
     split: str = "auto"
@@ -79,7 +80,7 @@ class EvaluateConfig:
     offline: bool = False
     hints: bool = True
     backend: str = "auto"
-    refiner: str = "none"
+    refiner: str = "pretrained"
 
     def __post_init__(self):
         if self.backend not in BACKENDS:

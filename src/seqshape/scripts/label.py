@@ -135,7 +135,8 @@ def sequences_of(args) -> list[str] | None:
 _ESTIMATOR: dict = {}  # the estimator of this process (sc-* modes), loaded once
 
 
-def _estimator(mode: str, checkpoint: str | None, backend: str, placement: str = "none"):
+def _estimator(mode: str, checkpoint: str | None, backend: str,
+               placement: str = "pretrained"):
     """This process's estimator (None for gt-accumulation), loaded at its first use."""
     if mode == "gt-accumulation":
         return None
