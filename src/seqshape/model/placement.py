@@ -406,7 +406,8 @@ def load_refiner(spec: str | Path | None, config: RefinerConfig | None = None
 
 
 def _move(points: np.ndarray, old, new) -> np.ndarray:
-    """Points placed with pose ``old`` re-placed with pose ``new`` (the same canonical cloud)."""
+    """Points placed with pose ``old`` re-placed with pose ``new`` (the same canonical cloud);
+    the one-cloud reference of :func:`_move_batch` (tests)."""
     from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
 
     return canonical_to_sensor(sensor_to_canonical(points, old), new)

@@ -11,8 +11,8 @@
    height, yaw N(0, 3 degrees), extents x exp(N(0, 5 %))), so that the refiner also sees the
    errors a network makes on data unlike its training split; with probability 1/2 the frame is
    mirrored across the estimate's long axis (vehicles are left-right symmetric). The inputs
-   are :func:`~seqshape.model.placement.refine_inputs` (the same function the inference path
-   calls), the targets :func:`~seqshape.model.placement.targets`; loss: smooth L1 of the
+   are :func:`~seqshape.model.placement.refine_inputs` (the inference path calls its batched
+   form, :func:`~seqshape.model.placement.refine_inputs_batch`, tested equal), the targets :func:`~seqshape.model.placement.targets`; loss: smooth L1 of the
    centre correction (in units of the input scale, beta 5 cm) plus half the smooth L1 of the
    axis correction (rad, beta 0.02). Adam with a one-cycle schedule.
 3. **Checkpoints**: ``OUT/refiner.ckpt`` (weights, optimiser, schedule, random states) every
