@@ -255,3 +255,26 @@ def test_evaluate_with_a_refiner_file(tmp_path):
         assert runs["refined"][m]["cd_cm"] != runs["plain"][m]["cd_cm"]
     assert main(["evaluate", "--data", str(data.path), "--checkpoint", seq, "--baseline", base,
                  "--out", str(tmp_path / "x"), "--refiner", str(tmp_path / "nope.pt")]) == 1
+
+
+def test_a_steps_tracks_carry_their_own_corrections():
+    """In one step of several tracks, an empty frame gets its own track's last correction,
+    never another track's: a track without points yet is left as the network gives it."""
+    torch.manual_seed(0)
+    est = Estimator(ShapePoseNet(CFG), threads=1)
+    tr = box_track("t", "val", np.random.default_rng(1), 3, None)
+    plain = est.step(["a", "new"], [tr.points[0], np.zeros((0, 3))])
+    est.reset()
+    est.refiner = _shift_refiner(dx=0.5, dy=0.0, dz=0.0, dyaw=0.0)
+    refined = est.step(["a", "new"], [tr.points[0], np.zeros((0, 3))])
+    np.testing.assert_array_equal(refined[1].pose, plain[1].pose)  # no correction of its own
+    np.testing.assert_array_equal(refined[1].complete, plain[1].complete)
+    assert np.linalg.norm(refined[0].pose[:2] - plain[0].pose[:2]) == pytest.approx(0.5)
+    # "a" empty next step: its carried estimate keeps a's correction
+    est.refiner = None
+    carried_plain = est.step(["a", "b"], [np.zeros((0, 3)), tr.points[1]])[0]
+    est.reset()
+    est.refiner = _shift_refiner(dx=0.5, dy=0.0, dz=0.0, dyaw=0.0)
+    est.step(["a", "new"], [tr.points[0], np.zeros((0, 3))])
+    carried = est.step(["a", "b"], [np.zeros((0, 3)), tr.points[1]])[0]
+    assert np.linalg.norm(carried.pose[:2] - carried_plain.pose[:2]) == pytest.approx(0.5)

@@ -52,7 +52,6 @@ import torch
 
 from seqshape.data.windows import points_length, resample_frame
 from seqshape.errors import ConfigError, DataError
-from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
 from seqshape.model.config import ModelConfig
 from seqshape.model.engine import (
     BACKENDS,
@@ -65,7 +64,7 @@ from seqshape.model.engine import (
 )
 from seqshape.model.heading import HeadingConfig, HeadingFilter, wrap_angle
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet
-from seqshape.model.placement import apply_delta, delta, load_refiner
+from seqshape.model.placement import apply_corrections, load_refiner
 
 log = logging.getLogger(__name__)
 
@@ -468,14 +467,13 @@ class Estimator:
         """The placement refiner over one step's tracks (one batched pass); an empty frame's
         carried estimate gets its track's last correction."""
         c, p = np.stack(complete), np.stack(pose)
-        lasts = [st.correction for st in states]
-        new_c, new_p, _ = self.refiner.refine_sequence(frames, c, p)
+        corr = self.refiner.corrections_of(frames, c, p)
         for i, st in enumerate(states):
-            if len(frames[i]) and np.all(np.isfinite(new_p[i])):
-                st.correction = delta(p[i:i + 1], new_p[i:i + 1])[0]
-            elif not len(frames[i]) and lasts[i] is not None and st.seen:
-                new_p[i] = apply_delta(p[i], lasts[i])
-                new_c[i] = canonical_to_sensor(sensor_to_canonical(c[i], p[i]), new_p[i])
+            if np.isfinite(corr[i, 0]):
+                st.correction = corr[i]
+            elif not len(frames[i]) and st.correction is not None:
+                corr[i] = st.correction
+        new_c, new_p = apply_corrections(c, p, corr)
         return list(new_c), list(new_p)
 
     def _check(self, name: str) -> bool:

@@ -285,51 +285,67 @@ class PlacementRefiner:
             poses[ok, 3] = yaw + turn
         return poses
 
+    def corrections_of(self, frames: Sequence[np.ndarray], complete: np.ndarray,
+                       poses: np.ndarray, seeds: Sequence[int] | None = None) -> np.ndarray:
+        """``(F, 4)`` corrections (:func:`delta`) of independent frames, one batched pass;
+        NaN rows for the frames left alone (fewer than ``min_points`` points, a non-finite
+        pose). ``frames``: per frame the points the network got; ``complete`` (F, K, 3) and
+        ``poses`` (F, 4) its estimates; ``seeds``: per frame, the seed of the points' subset
+        (when a frame has more than :data:`NUM_POINTS`)."""
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+        corr = np.full((len(poses), 4), np.nan)
+        idx = [i for i, f in enumerate(frames) if len(f) >= max(self.config.min_points, 1)
+               and np.all(np.isfinite(poses[i]))]
+        if idx:
+            complete = np.asarray(complete)
+            new = self.refine_poses([frames[i] for i in idx], poses[idx],
+                                    extents_batch(complete[idx], poses[idx]),
+                                    None if seeds is None else [seeds[i] for i in idx])
+            corr[idx] = delta(poses[idx], new)
+        return corr
+
     def refine_sequence(self, frames: Sequence[np.ndarray], complete: np.ndarray,
                         poses: np.ndarray, last: np.ndarray | None = None,
                         seeds: Sequence[int] | None = None
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Refine the estimates of consecutive frames of one track (or of one frame each of
-        many tracks, with ``last`` None).
+        """Refine the estimates of consecutive frames of one track.
 
         Args:
-            frames: per frame the points the network got (sensor frame; may be empty).
-            complete: (F, K, 3) the placed complete shapes; poses: (F, 4) their poses.
-            last: the correction (:func:`delta`) of the frame before, carried over empty
-                frames (None: empty frames before the first refined one are left alone).
-            seeds: per frame, the seed of the points' subset (when a frame has more than
-                :data:`NUM_POINTS`).
+            frames, complete, poses, seeds: as in :meth:`corrections_of`.
+            last: the correction of the frame before, carried over empty frames (None: empty
+                frames before the first refined one are left alone).
 
         Returns ``(complete, poses, last)``: new arrays (the shapes moved rigidly with their
         poses) and the correction of the last frame with points. A frame with points is
         refined; an empty one (the estimate carried forward from the state) gets the last
         correction, as the estimate it repeats did.
         """
-        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
-        complete = np.asarray(complete)
-        out_c, out_p = np.array(complete, copy=True), poses.copy()
-        idx = [i for i, f in enumerate(frames) if len(f) >= max(self.config.min_points, 1)
-               and np.all(np.isfinite(poses[i]))]
-        corr = np.full((len(poses), 4), np.nan)
-        if idx:
-            ext = extents_batch(complete[idx], poses[idx])
-            new = self.refine_poses([frames[i] for i in idx], poses[idx], ext,
-                                    None if seeds is None else [seeds[i] for i in idx])
-            corr[idx] = delta(poses[idx], new)
-        moved = []
-        for i in range(len(poses)):
+        corr = self.corrections_of(frames, complete, poses, seeds)
+        for i in range(len(corr)):
             if np.isfinite(corr[i, 0]):
                 last = corr[i]
-            elif len(frames[i]) or last is None or not np.all(np.isfinite(poses[i])):
-                continue  # a frame with too few points, or nothing to carry
-            if not np.any(last):
-                continue  # no correction: the estimate as it is, bit for bit
-            out_p[i] = apply_delta(poses[i], last)
-            moved.append(i)
-        if moved:
-            out_c[moved] = _move_batch(complete[moved], poses[moved],
-                                       out_p[moved]).astype(complete.dtype)
-        return out_c, out_p, last
+            elif not len(frames[i]) and last is not None:
+                corr[i] = last
+        complete, poses = apply_corrections(complete, poses, corr)
+        return complete, poses, last
+
+
+def apply_corrections(complete: np.ndarray, poses: np.ndarray, corr: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Copies of ``complete`` (F, K, 3) and ``poses`` (F, 4) moved by the corrections ``corr``
+    (F, 4) (:func:`delta`; a NaN row, or a non-finite pose: left as it is; an all-zero row:
+    bit for bit as it is), each shape moved rigidly with its pose."""
+    complete = np.asarray(complete)
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+    out_c, out_p = np.array(complete, copy=True), poses.copy()
+    moved = [i for i in range(len(poses)) if np.isfinite(corr[i, 0]) and np.any(corr[i])
+             and np.all(np.isfinite(poses[i]))]
+    if moved:
+        for i in moved:
+            out_p[i] = apply_delta(poses[i], corr[i])
+        out_c[moved] = _move_batch(complete[moved], poses[moved],
+                                   out_p[moved]).astype(complete.dtype)
+    return out_c, out_p
 
 
 def extents_of(complete: np.ndarray, pose) -> np.ndarray:
