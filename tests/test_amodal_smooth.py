@@ -52,6 +52,48 @@ def test_parked_vehicle_takes_the_majority_heading():
     assert np.abs(wrap_angle(out[:, 3] - truth[3])).max() < 0.1
 
 
+def test_a_vehicle_that_stops_within_the_track_is_not_fitted_with_one_line():
+    """A car braking to a stop (2 m travelled, under ``min_travel``), then standing: a
+    constant-velocity line through the whole track misplaced its moving frames by metres
+    (the robust fit rejects them as outliers). Seen from a moving, turning ego."""
+    rng = np.random.default_rng(2)
+    frames = np.arange(50)
+    v0, a = 0.4, 0.04  # m per frame, m per frame^2: stops after 10 frames, 2 m on
+    tau = np.minimum(frames, v0 / a)
+    along = v0 * tau - 0.5 * a * tau ** 2
+    yaw_w = 0.4
+    world = np.c_[12.0 + along * np.cos(yaw_w), -3.0 + along * np.sin(yaw_w),
+                  np.full(50, -0.8), np.full(50, yaw_w)]
+    ego = np.stack([_ego(t) for t in frames])
+    from seqshape.geometry import matrix_to_pose
+
+    egop = matrix_to_pose(ego)
+    truth = np.stack([compose(invert(egop[i]), world[i]) for i in frames])
+    for noise in (0.03, 0.15):
+        noisy = truth + np.c_[rng.normal(0, noise, (50, 3)), rng.normal(0, 0.05, 50)]
+        out = smooth_track_poses(noisy, frames, ego)
+        err = np.linalg.norm(out[:, :2] - truth[:, :2], axis=1)
+        raw = np.linalg.norm(noisy[:, :2] - truth[:, :2], axis=1)
+        # the whole-track line (the previous rule): mean 0.18 m, max 1.8 m at both noises
+        assert err.mean() < max(0.6 * raw.mean(), 0.03) and err.max() < 0.3, (noise, err)
+
+
+def test_parked_vehicles_keep_the_whole_track_line():
+    """The stop-and-go check must not take the line away from parked cars: at 3-30 cm of
+    noise and 10-120 frames the positions are the whole-track robust line's."""
+    from seqshape.model.smooth import _local_fit
+
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        n, noise = int(rng.integers(10, 120)), rng.uniform(0.03, 0.3)
+        frames = np.arange(n)
+        truth = np.array([rng.uniform(5, 40), rng.uniform(-10, 10), -0.9, 0.5])
+        noisy = truth + np.c_[rng.normal(0, noise, (n, 3)), rng.normal(0, 0.1, n)]
+        out = smooth_track_poses(noisy, frames, np.broadcast_to(np.eye(4), (n, 4, 4)))
+        line, _ = _local_fit(frames, noisy[:, :3], np.inf, 3, 0.3, max_deg=1)
+        np.testing.assert_allclose(out[:, :3], line, atol=1e-9)
+
+
 def test_axial_mean_and_edge_cases():
     assert axial_mean([0.1, 0.1 + np.pi, 0.1, 0.1]) == pytest.approx(0.1)
     assert smooth_track_poses(np.zeros((0, 4)), []).shape == (0, 4)

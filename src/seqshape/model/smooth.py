@@ -12,9 +12,12 @@ by 180 degrees), but a vehicle moves smoothly in the world. :func:`smooth_track_
 3. the heading: a vehicle that travels at least ``min_travel`` metres over the track takes
    the direction of its fitted velocity wherever it moves faster than ``min_speed`` m/s
    (vehicles drive forwards). A track that does not travel that far (parked, or creeping)
-   is refitted over all its frames at once as a straight line, and its heading is the axial
-   mean of the estimated headings (angles doubled, averaged, halved: a flip does not count
-   against it), turned to the side most estimates point to;
+   is refitted over all its frames at once as a straight line if that line follows the
+   local fit within the estimates' noise (``line_tolerance``, ``line_sigmas``; a vehicle
+   that stops or starts within the track is no constant-velocity line: it keeps the local
+   fit), and its heading is the axial mean of the estimated headings (angles doubled,
+   averaged, halved: a flip does not count against it), turned to the side most estimates
+   point to;
 4. maps the smoothed poses back into each frame's sensor frame.
 
 Without ego poses the sensor's own motion is unknown, so the motion direction in the sensor
@@ -108,7 +111,9 @@ def axial_mean(angles) -> float:
 
 def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: int = 8,
                        iterations: int = 3, scale: float = 0.3, min_travel: float = 3.0,
-                       min_speed: float = 1.0, valid=None) -> np.ndarray:
+                       min_speed: float = 1.0, valid=None, line_tolerance: float = 0.05,
+                       line_sigmas: float = 1.7
+                       ) -> np.ndarray:
     """Smoothed ``(T, 4)`` sensor-frame poses of one track (module doc).
 
     Args:
@@ -121,6 +126,11 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
         scale: residual scale (m) of the Tukey weights (rejects beyond 4.7 * scale).
         min_travel: metres the fitted track must cover to count as moving.
         min_speed: m/s below which a moving track's heading falls back to the estimates.
+        line_tolerance, line_sigmas: a track travelling less than ``min_travel`` takes the
+            whole-track line only when, at 95 % of the fitted frames, the line lies within
+            ``line_tolerance + line_sigmas * sigma`` metres of the local fit (sigma: the
+            estimates' noise, from the local fit's median residual); otherwise (a vehicle
+            that stops or starts within the track) it keeps the local fit.
         valid: ``(T,)`` bool, the frames whose estimates are fitted (default all); the others
             (frames without points, whose estimates are stale) get the fit's value at their
             time. With no valid frame the poses are returned unchanged.
@@ -141,8 +151,17 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     tv = t[valid]
     pos, vel = _local_fit(tv, w[:, :3], window, iterations, scale, query=t)
     travel = float(np.linalg.norm(pos[valid][-1, :2] - pos[valid][0, :2]))
-    if travel < min_travel:  # parked or creeping: one robust line over the whole track
-        pos, vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=1, query=t)
+    if travel < min_travel:  # parked or creeping: one robust line over the whole track,
+        line, line_vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=1,
+                                    query=t)
+        # unless the vehicle stopped or started within the track (a line through a stop
+        # misplaces frames by metres): the line must follow the local fit within what the
+        # estimates' noise lets the local fit wander (sigma from its median residual: the
+        # median of a 2-D normal's distance is 1.177 sigma)
+        sigma = float(np.median(np.linalg.norm(w[:, :2] - pos[valid, :2], axis=1))) / 1.177
+        off = np.linalg.norm(line[valid, :2] - pos[valid, :2], axis=1)
+        if float(np.quantile(off, 0.95)) <= line_tolerance + line_sigmas * sigma:
+            pos, vel = line, line_vel
     speed = np.linalg.norm(vel[:, :2], axis=1) * rate_hz  # m/s
     yaw = np.full(len(t), axial_mean(w[:, 3]))
     if travel >= min_travel:
