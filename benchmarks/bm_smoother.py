@@ -1,11 +1,13 @@
 """The offline pose smoother on real and synthetic vehicle trajectories: error of noisy poses
-smoothed by :func:`seqshape.model.smooth.smooth_track_poses` under three rules for a track
+smoothed by :func:`seqshape.model.smooth.smooth_track_poses` under four rules for a track
 that travels less than ``min_travel``.
 
 * ``line always``: the whole-track robust line (the rule before 2026-12-03);
 * ``line if it follows``: the line only where it follows the local fit within the
-  estimates' noise (the shipped rule, docs/model.md "Stop and go");
-* ``local fit``: never the line.
+  estimates' noise (docs/model.md "Stop and go");
+* ``+ constant if parked``: that, and a line whose travel is within noise replaced by the
+  robust constant (the shipped rule);
+* ``local fit``: never the whole-track fit.
 
 Trajectories: the true poses of KITTI tracking labels (``--kitti ROOT --sequences ...``; no
 oxts there, so the poses stay in the moving sensor's frame and the smoother runs without ego
@@ -30,8 +32,9 @@ from seqshape.data import kitti
 from seqshape.geometry import matrix_to_pose, pose_to_matrix
 from seqshape.model.smooth import smooth_track_poses
 
-RULES = {"line always": {"line_tolerance": np.inf},
-         "line if it follows": {},
+RULES = {"line always": {"line_tolerance": np.inf, "parked_constant": False},
+         "line if it follows": {"parked_constant": False},
+         "+ constant if parked": {},
          "local fit": {"line_tolerance": -np.inf}}
 VEHICLES = ("Car", "Van", "Truck")
 

@@ -15,9 +15,11 @@ by 180 degrees), but a vehicle moves smoothly in the world. :func:`smooth_track_
    is refitted over all its frames at once as a straight line if that line follows the
    local fit within the estimates' noise (``line_tolerance``, ``line_sigmas``; a vehicle
    that stops or starts within the track is no constant-velocity line: it keeps the local
-   fit), and its heading is the axial mean of the estimated headings (angles doubled,
-   averaged, halved: a flip does not count against it), turned to the side most estimates
-   point to;
+   fit); when that line's travel is within noise (``parked_constant``: 2.5 standard
+   errors) the track is parked and takes the robust constant position instead (a line's
+   slope only adds noise at the track's ends); its heading is the axial mean of the
+   estimated headings (angles doubled, averaged, halved: a flip does not count against
+   it), turned to the side most estimates point to;
 4. maps the smoothed poses back into each frame's sensor frame.
 
 Without ego poses the sensor's own motion is unknown, so the motion direction in the sensor
@@ -112,7 +114,7 @@ def axial_mean(angles) -> float:
 def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: int = 8,
                        iterations: int = 3, scale: float = 0.3, min_travel: float = 3.0,
                        min_speed: float = 1.0, valid=None, line_tolerance: float = 0.05,
-                       line_sigmas: float = 1.7
+                       line_sigmas: float = 1.7, parked_constant: bool = True
                        ) -> np.ndarray:
     """Smoothed ``(T, 4)`` sensor-frame poses of one track (module doc).
 
@@ -131,6 +133,9 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
             ``line_tolerance + line_sigmas * sigma`` metres of the local fit (sigma: the
             estimates' noise, from the local fit's median residual); otherwise (a vehicle
             that stops or starts within the track) it keeps the local fit.
+        parked_constant: a short track whose line travels less than 2.5 standard errors of
+            a line's travel (``sigma * sqrt(12 / n)`` over n fitted frames) takes the robust
+            constant position over the whole track instead.
         valid: ``(T,)`` bool, the frames whose estimates are fitted (default all); the others
             (frames without points, whose estimates are stale) get the fit's value at their
             time. With no valid frame the poses are returned unchanged.
@@ -152,16 +157,24 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     pos, vel = _local_fit(tv, w[:, :3], window, iterations, scale, query=t)
     travel = float(np.linalg.norm(pos[valid][-1, :2] - pos[valid][0, :2]))
     if travel < min_travel:  # parked or creeping: one robust line over the whole track,
-        line, line_vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=1,
-                                    query=t)
         # unless the vehicle stopped or started within the track (a line through a stop
         # misplaces frames by metres): the line must follow the local fit within what the
         # estimates' noise lets the local fit wander (sigma from its median residual: the
         # median of a 2-D normal's distance is 1.177 sigma)
         sigma = float(np.median(np.linalg.norm(w[:, :2] - pos[valid, :2], axis=1))) / 1.177
+        line, line_vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=1,
+                                    query=t)
         off = np.linalg.norm(line[valid, :2] - pos[valid, :2], axis=1)
         if float(np.quantile(off, 0.95)) <= line_tolerance + line_sigmas * sigma:
             pos, vel = line, line_vel
+            # a parked car: the line's travel within 2.5 times its standard error per axis
+            # (sigma * sqrt(12 / n) for n frames evenly spread; a 2-D drift of pure noise
+            # exceeds that in 4 % of tracks) -> a constant position
+            span = float(tv.max() - tv.min())
+            drift = float(np.linalg.norm(line_vel[0, :2])) * span
+            if parked_constant and drift <= 2.5 * sigma * np.sqrt(12.0 / len(tv)):
+                pos, vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=0,
+                                      query=t)
     speed = np.linalg.norm(vel[:, :2], axis=1) * rate_hz  # m/s
     yaw = np.full(len(t), axial_mean(w[:, 3]))
     if travel >= min_travel:
