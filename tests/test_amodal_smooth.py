@@ -111,6 +111,29 @@ def test_parked_and_creeping_vehicles_keep_the_whole_track_fit():
     np.testing.assert_allclose(out[:, :3], line, atol=1e-9)
 
 
+def test_a_turning_vehicle_keeps_its_heading_not_its_centres_motion():
+    """Kinematic bicycle: the rear axle runs on a circle of 8 m at 3 m/s and the box centre,
+    1.4 m ahead of it, moves atan(1.4 / 8) = 9.9 degrees to the inside of its heading. The
+    smoother's heading must be the vehicle's, not the centre's direction of motion."""
+    rng = np.random.default_rng(4)
+    frames = np.arange(60)
+    radius, arm, speed = 8.0, 1.4, 0.3  # m, m, m per frame
+    phi = speed * frames / radius  # angle travelled on the circle
+    heading = phi + np.pi / 2
+    rear = np.c_[20 + radius * np.cos(phi), 5 + radius * np.sin(phi)]
+    centre = rear + arm * np.c_[np.cos(heading), np.sin(heading)]
+    truth = np.c_[centre, np.full(60, -0.8), wrap_angle(heading)]
+    eye = np.broadcast_to(np.eye(4), (60, 4, 4))
+    noisy = truth + np.c_[rng.normal(0, 0.05, (60, 3)), rng.normal(0, np.radians(2.0), 60)]
+    noisy[[10, 40], 3] += np.pi  # flips do not disturb the fit
+    slip = np.degrees(np.abs(wrap_angle(smooth_track_poses(noisy, frames, eye)[:, 3]
+                                        - truth[:, 3])))
+    motion = np.degrees(np.abs(wrap_angle(
+        smooth_track_poses(noisy, frames, eye, sideslip=False)[:, 3] - truth[:, 3])))
+    assert 8.0 < np.median(motion) < 12.0  # the centre's motion: the sideslip
+    assert np.median(slip) < 1.5 and slip[5:-5].max() < 4.0, slip
+
+
 def test_axial_mean_and_edge_cases():
     assert axial_mean([0.1, 0.1 + np.pi, 0.1, 0.1]) == pytest.approx(0.1)
     assert smooth_track_poses(np.zeros((0, 4)), []).shape == (0, 4)

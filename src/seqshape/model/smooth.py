@@ -11,7 +11,9 @@ by 180 degrees), but a vehicle moves smoothly in the world. :func:`smooth_track_
    from the residuals (``iterations`` times), so a few bad estimates do not pull the fit;
 3. the heading: a vehicle that travels at least ``min_travel`` metres over the track takes
    the direction of its fitted velocity wherever it moves faster than ``min_speed`` m/s
-   (vehicles drive forwards). A track that does not travel that far (parked, or creeping)
+   (vehicles drive forwards), less the sideslip of its centre in a turn (``sideslip``: the
+   rear axle moves along the heading, the centre drifts to the inside by ``atan(arm *
+   curvature)``, ``arm`` fitted per track to the estimated yaws). A track that does not travel that far (parked, or creeping)
    is refitted over all its frames at once as a straight line if that line follows the
    local fit within the estimates' noise (``line_tolerance``, ``line_sigmas``; a vehicle
    that stops or starts within the track is no constant-velocity line: it keeps the local
@@ -103,6 +105,52 @@ def _local_fit_batch(t, y, window, iterations, scale, max_deg, query):
     return coef[:, 0], slope
 
 
+#: Largest distance (m) from the rear axle to the box centre :func:`_sideslip` will fit.
+MAX_REAR_ARM = 4.0
+#: Largest sideslip (rad) :func:`_sideslip` returns (a car at full lock: about 17 degrees).
+MAX_SIDESLIP = np.radians(25.0)
+#: Half-width (frames) of the running median of the path's curvature in :func:`_sideslip`.
+CURVATURE_HALF = 4
+
+
+def _sideslip(t: np.ndarray, direction: np.ndarray, step: np.ndarray, yaws: np.ndarray,
+              valid: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """The angle (rad) between the motion direction of a vehicle's box centre and its heading,
+    per frame: ``atan(arm * curvature)``. A vehicle turns about its rear axle (kinematic
+    bicycle), so the centre, ``arm`` metres ahead of the axle, drifts to the inside of the
+    turn. The curvature is that of the fitted path (change of ``direction`` per metre,
+    ``step`` metres per frame); ``arm``, one number per track, is fitted to the estimated
+    ``yaws`` of the valid moving frames (their offsets from the motion direction, modulo pi,
+    least squares with one round of 3-MAD outlier rejection, clipped to [0,
+    MAX_REAR_ARM]). A straight track has no curvature and gets no correction."""
+    theta = np.unwrap(direction)
+    curv = np.zeros(len(t))
+    if len(t) > 1:
+        rate = np.gradient(theta, t)  # rad per frame
+        curv = np.where(step > 1e-6, rate / np.maximum(step, 1e-6), 0.0)
+        # a running median over +-CURVATURE_HALF frames: the fit's degree changes near the
+        # track's ends, which puts a kink, not a turn, into the direction
+        lo = np.searchsorted(t, t - CURVATURE_HALF, side="left")
+        hi = np.searchsorted(t, t + CURVATURE_HALF, side="right")
+        curv = np.array([np.median(curv[a:b]) for a, b in zip(lo, hi, strict=True)])
+    use = valid & moving
+    k = curv[use]
+    off = (yaws - direction[valid])[use[valid]]
+    off = (off + np.pi / 2) % np.pi - np.pi / 2  # a flipped estimate counts as its axis
+    if len(k) < 3 or float(np.sum(k * k)) <= 0.0:
+        return np.zeros(len(t))
+    keep = np.ones(len(k), bool)
+    for _ in range(2):
+        arm = -float(np.sum(k[keep] * off[keep]) / max(np.sum(k[keep] ** 2), 1e-12))
+        r = off + arm * k
+        mad = float(np.median(np.abs(r - np.median(r)))) * 1.4826
+        keep = np.abs(r) <= 3.0 * max(mad, 1e-3)
+        if keep.sum() < 3:
+            break
+    arm = float(np.clip(arm, 0.0, MAX_REAR_ARM))
+    return np.clip(np.arctan(arm * curv), -MAX_SIDESLIP, MAX_SIDESLIP)
+
+
 def axial_mean(angles) -> float:
     """Mean direction of ``angles`` ignoring 180-degree flips, turned to the majority side."""
     angles = np.asarray(angles, dtype=np.float64)
@@ -114,7 +162,8 @@ def axial_mean(angles) -> float:
 def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: int = 8,
                        iterations: int = 3, scale: float = 0.3, min_travel: float = 3.0,
                        min_speed: float = 1.0, valid=None, line_tolerance: float = 0.05,
-                       line_sigmas: float = 1.7, parked_constant: bool = True
+                       line_sigmas: float = 1.7, parked_constant: bool = True,
+                       sideslip: bool = True
                        ) -> np.ndarray:
     """Smoothed ``(T, 4)`` sensor-frame poses of one track (module doc).
 
@@ -133,6 +182,11 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
             ``line_tolerance + line_sigmas * sigma`` metres of the local fit (sigma: the
             estimates' noise, from the local fit's median residual); otherwise (a vehicle
             that stops or starts within the track) it keeps the local fit.
+        sideslip: a moving frame's heading is the motion direction corrected for the
+            centre's drift to the inside of a turn (:func:`_sideslip`: the rear axle moves
+            along the heading, the centre does not; up to 15-20 degrees in a tight turn),
+            with the centre's distance from the rear axle fitted to the estimated yaws.
+            False: the motion direction alone.
         parked_constant: a short track whose line travels less than 2.5 standard errors of
             a line's travel (``sigma * sqrt(12 / n)`` over n fitted frames) takes the robust
             constant position over the whole track instead.
@@ -184,7 +238,11 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
             yaw = np.where(np.isfinite(yaw), yaw, axial_mean(w[:, 3]))
         else:
             moving = speed >= min_speed
-            yaw[moving] = np.arctan2(vel[moving, 1], vel[moving, 0])
+            direction = np.arctan2(vel[:, 1], vel[:, 0])
+            yaw[moving] = direction[moving]
+            if sideslip:
+                yaw[moving] -= _sideslip(t, direction, speed / rate_hz, w[:, 3], valid,
+                                         moving)[moving]
     smooth = pose_to_matrix(np.c_[pos, yaw])
     back = np.einsum("tij,tjk->tik", np.linalg.inv(e), smooth)
     return matrix_to_pose(back)
