@@ -19,7 +19,9 @@ pieces (docs/model.md, section "Offline mode", has their measured figures):
   weights the detections each has seen).
 * ``smooth``: the poses smoothed along the whole track in the fixed frame of the ego poses
   (:func:`seqshape.model.smooth.smooth_track_poses`: robust local quadratic fit of the
-  centres, heading from the motion of a moving vehicle, else the track's axial mean yaw).
+  centres, a whole-track line or constant for a parked or creeping one that follows it;
+  heading from the motion of a moving vehicle less its centre's sideslip in a turn, else
+  the track's axial mean yaw).
 * ``heading``: make the yaw consistent along the whole track in a fixed frame (needs ego
   poses, or a static sensor): the motion direction over a window centred on each frame (both
   directions in time) where the vehicle moves steadily, else a vote over the whole track
