@@ -132,7 +132,9 @@ def _sideslip(t: np.ndarray, direction: np.ndarray, step: np.ndarray, yaws: np.n
         # track's ends, which puts a kink, not a turn, into the direction
         lo = np.searchsorted(t, t - CURVATURE_HALF, side="left")
         hi = np.searchsorted(t, t + CURVATURE_HALF, side="right")
-        curv = np.array([np.median(curv[a:b]) for a, b in zip(lo, hi, strict=True)])
+        idx = lo[:, None] + np.arange(int((hi - lo).max()))
+        inside = idx < hi[:, None]
+        curv = np.nanmedian(np.where(inside, curv[np.minimum(idx, len(t) - 1)], np.nan), axis=1)
     use = valid & moving
     k = curv[use]
     off = (yaws - direction[valid])[use[valid]]
