@@ -9,19 +9,19 @@ by 180 degrees), but a vehicle moves smoothly in the world. :func:`smooth_track_
 2. fits the positions with a local robust quadratic in time: for each frame, the frames
    within ``window`` frames of it, weighted least squares with Tukey biweights recomputed
    from the residuals (``iterations`` times), so a few bad estimates do not pull the fit;
-3. the heading: a vehicle that travels at least ``min_travel`` metres over the track takes
-   the direction of its fitted velocity wherever it moves faster than ``min_speed`` m/s
+3. the heading: a vehicle that travels at least ``min_travel`` metres over the track takes the
+   direction of its fitted velocity wherever it moves faster than ``min_speed`` m/s
    (vehicles drive forwards), less the sideslip of its centre in a turn (``sideslip``: the
    rear axle moves along the heading, the centre drifts to the inside by ``atan(arm *
-   curvature)``, ``arm`` fitted per track to the estimated yaws). A track that does not travel that far (parked, or creeping)
-   is refitted over all its frames at once as a straight line if that line follows the
-   local fit within the estimates' noise (``line_tolerance``, ``line_sigmas``; a vehicle
-   that stops or starts within the track is no constant-velocity line: it keeps the local
-   fit); when that line's travel is within noise (``parked_constant``: 2.5 standard
-   errors) the track is parked and takes the robust constant position instead (a line's
-   slope only adds noise at the track's ends); its heading is the axial mean of the
-   estimated headings (angles doubled, averaged, halved: a flip does not count against
-   it), turned to the side most estimates point to;
+   curvature)``, ``arm`` fitted per track to the estimated yaws). A track that does not
+   travel that far (parked, or creeping) is refitted over all its frames at once as a
+   straight line if that line follows the local fit within the estimates' noise
+   (``line_tolerance``, ``line_sigmas``; a vehicle that stops or starts within the track is
+   no constant-velocity line: it keeps the local fit); when that line's travel is within
+   noise (``parked_constant``: 2.5 standard errors) the track is parked and takes the robust
+   constant position instead (a line's slope only adds noise at the track's ends); its
+   heading is the axial mean of the estimated headings (angles doubled, averaged, halved: a
+   flip does not count against it), turned to the side most estimates point to;
 4. maps the smoothed poses back into each frame's sensor frame.
 
 Without ego poses the sensor's own motion is unknown, so the motion direction in the sensor
