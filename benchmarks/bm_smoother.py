@@ -17,9 +17,9 @@ poses, as ``seqshape label`` does on a log without them) and of a synthetic data
 mean and 95th-percentile centre error in the plane, over all frames of the tracks the rule
 concerns (travel under ``min_travel``; other tracks are smoothed the same under every rule),
 and the number of those tracks where the line was refused. A second table gives the heading
-error of the synthetic sets' moving tracks (10 cm of centre noise, ``--yaw-noise`` degrees of
-yaw noise) with the motion direction alone and with the sideslip correction (docs/model.md,
-"Sideslip").
+error of the synthetic sets' moving tracks (``--centre-noise`` metres, ``--yaw-noise`` degrees)
+with the motion direction alone, with the sideslip correction (docs/model.md, "Sideslip"), and
+with the estimates blended in where the motion direction is the less certain (shipped).
 
 Run: ``python benchmarks/bm_smoother.py --kitti ../shared/realdata/kitti-tracking/training
 --sequences 0000 0001 0016 [--data DIR --split val] [--noise 0.05 0.15 0.3] [--repeats 5]``
@@ -39,6 +39,9 @@ RULES = {"line always": {"line_tolerance": np.inf, "parked_constant": False},
          "line if it follows": {"parked_constant": False},
          "+ constant if parked": {},
          "local fit": {"line_tolerance": -np.inf}}
+HEADING_RULES = {"motion direction": {"sideslip": False, "blend": False},
+                 "+ sideslip": {"blend": False},
+                 "+ blend (shipped)": {}}
 VEHICLES = ("Car", "Van", "Truck")
 
 
@@ -98,7 +101,9 @@ def main() -> None:
     ap.add_argument("--noise", type=float, nargs="+", default=[0.05, 0.15, 0.3])
     ap.add_argument("--min-travel", type=float, default=3.0)
     ap.add_argument("--yaw-noise", type=float, nargs="+", default=[2.0, 6.0],
-                    help="degrees of yaw noise for the heading table (centres: 10 cm)")
+                    help="degrees of yaw noise for the heading table")
+    ap.add_argument("--centre-noise", type=float, default=0.1,
+                    help="metres of centre noise for the heading table (default 0.1)")
     args = ap.parse_args()
     sources = []
     if args.kitti:
@@ -145,22 +150,21 @@ def main() -> None:
             continue
         for noise in args.yaw_noise:
             rng = np.random.default_rng(args.seed)
-            err = {False: [], True: []}
+            err = {k: [] for k in HEADING_RULES}
             for _ in range(args.repeats):
                 for _tid, frames, poses, ego in moving:
-                    noisy = poses + np.c_[rng.normal(0, 0.1, (len(poses), 3)),
+                    noisy = poses + np.c_[rng.normal(0, args.centre_noise, (len(poses), 3)),
                                           rng.normal(0, np.radians(noise), len(poses))]
-                    for slip in err:
-                        out = smooth_track_poses(noisy, frames, ego, sideslip=slip)
-                        err[slip].append(np.degrees(np.abs(wrap_angle(out[:, 3] - poses[:, 3]))))
+                    for k, kw in HEADING_RULES.items():
+                        out = smooth_track_poses(noisy, frames, ego, **kw)
+                        err[k].append(np.degrees(np.abs(wrap_angle(out[:, 3] - poses[:, 3]))))
             cells = [f"{np.concatenate(e).mean():.2f} / {np.quantile(np.concatenate(e), 0.95):.2f}"
                      for e in err.values()]
             rows.append([name, f"{len(moving)} of {len(tracks)}", f"{noise:g}", *cells])
     if rows:
         print()
         print_table(["trajectories", "moving tracks", "yaw noise (deg)",
-                     "motion direction: mean / p95 (deg)",
-                     "+ sideslip (shipped): mean / p95 (deg)"], rows)
+                     *[f"{k}: mean / p95 (deg)" for k in HEADING_RULES]], rows)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,8 @@ by 180 degrees), but a vehicle moves smoothly in the world. :func:`smooth_track_
    direction of its fitted velocity wherever it moves faster than ``min_speed`` m/s
    (vehicles drive forwards), less the sideslip of its centre in a turn (``sideslip``: the
    rear axle moves along the heading, the centre drifts to the inside by ``atan(arm *
-   curvature)``, ``arm`` fitted per track to the estimated yaws). A track that does not
+   curvature)``, ``arm`` fitted per track to the estimated yaws), and blended with the
+   estimated yaws where they are the more certain (``blend``). A track that does not
    travel that far (parked, or creeping) is refitted over all its frames at once as a
    straight line if that line follows the local fit within the estimates' noise
    (``line_tolerance``, ``line_sigmas``; a vehicle that stops or starts within the track is
@@ -153,6 +154,32 @@ def _sideslip(t: np.ndarray, direction: np.ndarray, step: np.ndarray, yaws: np.n
     return np.clip(np.arctan(arm * curv), -MAX_SIDESLIP, MAX_SIDESLIP)
 
 
+def _blend(tv: np.ndarray, t: np.ndarray, residuals: np.ndarray, yaws: np.ndarray,
+           model: np.ndarray, step: np.ndarray, window: float) -> np.ndarray:
+    """Per frame, the share of the estimated yaws' local median offset from the motion
+    heading ``model`` (at the valid times ``tv``) to add to it: inverse-variance weights of
+    the motion direction (the centres' noise over the speed and the window's time spread) and
+    of the median of the estimates within ``window`` (their robust spread over the square
+    root of their count). A slow or noisy track leans on its estimates, a fast one on its
+    motion."""
+    sigma_pos = float(np.median(np.linalg.norm(residuals, axis=1))) / 1.177
+    off = (yaws - model + np.pi / 2) % np.pi - np.pi / 2
+    sigma_yaw = 1.4826 * float(np.median(np.abs(off - np.median(off))))
+    lo = np.searchsorted(tv, t - window, side="left")
+    hi = np.searchsorted(tv, t + window, side="right")
+    idx = lo[:, None] + np.arange(max(int((hi - lo).max()), 1))
+    inside = idx < hi[:, None]
+    j = np.minimum(idx, len(tv) - 1)
+    count = inside.sum(axis=1)
+    med = np.where(count > 0, np.nanmedian(np.where(inside, off[j], np.nan), axis=1)
+                   if inside.any() else 0.0, 0.0)
+    spread = np.where(inside, (tv[j] - t[:, None]) ** 2, 0.0).sum(axis=1)
+    var_dir = sigma_pos ** 2 / np.maximum(step ** 2 * np.maximum(spread, 1.0), 1e-12)
+    var_med = (1.2533 * sigma_yaw) ** 2 / np.maximum(count, 1)
+    weight = np.where(count > 0, var_dir / np.maximum(var_dir + var_med, 1e-12), 0.0)
+    return weight * np.nan_to_num(med)
+
+
 def axial_mean(angles) -> float:
     """Mean direction of ``angles`` ignoring 180-degree flips, turned to the majority side."""
     angles = np.asarray(angles, dtype=np.float64)
@@ -165,8 +192,7 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
                        iterations: int = 3, scale: float = 0.3, min_travel: float = 3.0,
                        min_speed: float = 1.0, valid=None, line_tolerance: float = 0.05,
                        line_sigmas: float = 1.7, parked_constant: bool = True,
-                       sideslip: bool = True
-                       ) -> np.ndarray:
+                       sideslip: bool = True, blend: bool = True) -> np.ndarray:
     """Smoothed ``(T, 4)`` sensor-frame poses of one track (module doc).
 
     Args:
@@ -189,6 +215,9 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
             along the heading, the centre does not; up to 15-20 degrees in a tight turn),
             with the centre's distance from the rear axle fitted to the estimated yaws.
             False: the motion direction alone.
+        blend: add to a moving frame's heading the estimated yaws' median offset from it
+            over the frames within ``window``, weighted by how much less certain the motion
+            direction is than that median (:func:`_blend`).
         parked_constant: a short track whose line travels less than 2.5 standard errors of
             a line's travel (``sigma * sqrt(12 / n)`` over n fitted frames) takes the robust
             constant position over the whole track instead.
@@ -245,6 +274,9 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
             if sideslip:
                 yaw[moving] -= _sideslip(t, direction, speed / rate_hz, w[:, 3], valid,
                                          moving)[moving]
+            if blend:
+                yaw[moving] += _blend(tv, t, w[:, :2] - pos[valid, :2], w[:, 3],
+                                      yaw[valid], speed / rate_hz, window)[moving]
     smooth = pose_to_matrix(np.c_[pos, yaw])
     back = np.einsum("tij,tjk->tik", np.linalg.inv(e), smooth)
     return matrix_to_pose(back)
