@@ -106,6 +106,41 @@ def _local_fit_batch(t, y, window, iterations, scale, max_deg, query):
     return coef[:, 0], slope
 
 
+def _axial(angles: np.ndarray) -> np.ndarray:
+    """Angles wrapped to [-pi/2, pi/2): a heading and its flip count as the same axis."""
+    return (angles + np.pi / 2) % np.pi - np.pi / 2
+
+
+def _noise(residuals: np.ndarray) -> float:
+    """Per-axis standard deviation of 2-D ``residuals (N, 2)`` from their median length (the
+    median distance of a 2-D normal is 1.177 sigma)."""
+    return float(np.median(np.linalg.norm(residuals, axis=1))) / 1.177
+
+
+def _robust_sd(x: np.ndarray) -> float:
+    """1.4826 x the median absolute deviation (the standard deviation of a normal)."""
+    return 1.4826 * float(np.median(np.abs(x - np.median(x))))
+
+
+def _windows(times: np.ndarray, query: np.ndarray, half: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """For each query, the samples of the sorted ``times`` within ``half`` of it, as a padded
+    index matrix: ``(idx (Q, M), inside (Q, M))``, ``idx`` clipped into range where
+    ``inside`` is False."""
+    lo = np.searchsorted(times, query - half, side="left")
+    hi = np.searchsorted(times, query + half, side="right")
+    idx = lo[:, None] + np.arange(max(int((hi - lo).max()), 1))
+    return np.minimum(idx, len(times) - 1), idx < hi[:, None]
+
+
+def _window_median(values: np.ndarray, idx: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """Median of ``values`` over each row's samples of :func:`_windows`; 0 for an empty row."""
+    out = np.zeros(len(idx))
+    some = inside.any(axis=1)
+    out[some] = np.nanmedian(np.where(inside[some], values[idx[some]], np.nan), axis=1)
+    return out
+
+
 #: Largest distance (m) from the rear axle to the box centre :func:`_sideslip` will fit.
 MAX_REAR_ARM = 4.0
 #: Largest sideslip (rad) :func:`_sideslip` returns (a car at full lock: about 17 degrees).
@@ -131,23 +166,17 @@ def _sideslip(t: np.ndarray, direction: np.ndarray, step: np.ndarray, yaws: np.n
         curv = np.where(step > 1e-6, rate / np.maximum(step, 1e-6), 0.0)
         # a running median over +-CURVATURE_HALF frames: the fit's degree changes near the
         # track's ends, which puts a kink, not a turn, into the direction
-        lo = np.searchsorted(t, t - CURVATURE_HALF, side="left")
-        hi = np.searchsorted(t, t + CURVATURE_HALF, side="right")
-        idx = lo[:, None] + np.arange(int((hi - lo).max()))
-        inside = idx < hi[:, None]
-        curv = np.nanmedian(np.where(inside, curv[np.minimum(idx, len(t) - 1)], np.nan), axis=1)
+        curv = _window_median(curv, *_windows(t, t, CURVATURE_HALF))
     use = valid & moving
     k = curv[use]
-    off = (yaws - direction[valid])[use[valid]]
-    off = (off + np.pi / 2) % np.pi - np.pi / 2  # a flipped estimate counts as its axis
+    off = _axial((yaws - direction[valid])[use[valid]])  # a flip counts as its axis
     if len(k) < 3 or float(np.sum(k * k)) <= 0.0:
         return np.zeros(len(t))
     keep = np.ones(len(k), bool)
     for _ in range(2):
         arm = -float(np.sum(k[keep] * off[keep]) / max(np.sum(k[keep] ** 2), 1e-12))
         r = off + arm * k
-        mad = float(np.median(np.abs(r - np.median(r)))) * 1.4826
-        keep = np.abs(r) <= 3.0 * max(mad, 1e-3)
+        keep = np.abs(r) <= 3.0 * max(_robust_sd(r), 1e-3)
         if keep.sum() < 3:
             break
     arm = float(np.clip(arm, 0.0, MAX_REAR_ARM))
@@ -162,22 +191,14 @@ def _blend(tv: np.ndarray, t: np.ndarray, residuals: np.ndarray, yaws: np.ndarra
     of the median of the estimates within ``window`` (their robust spread over the square
     root of their count). A slow or noisy track leans on its estimates, a fast one on its
     motion."""
-    sigma_pos = float(np.median(np.linalg.norm(residuals, axis=1))) / 1.177
-    off = (yaws - model + np.pi / 2) % np.pi - np.pi / 2
-    sigma_yaw = 1.4826 * float(np.median(np.abs(off - np.median(off))))
-    lo = np.searchsorted(tv, t - window, side="left")
-    hi = np.searchsorted(tv, t + window, side="right")
-    idx = lo[:, None] + np.arange(max(int((hi - lo).max()), 1))
-    inside = idx < hi[:, None]
-    j = np.minimum(idx, len(tv) - 1)
+    off = _axial(yaws - model)
+    idx, inside = _windows(tv, t, window)
     count = inside.sum(axis=1)
-    med = np.where(count > 0, np.nanmedian(np.where(inside, off[j], np.nan), axis=1)
-                   if inside.any() else 0.0, 0.0)
-    spread = np.where(inside, (tv[j] - t[:, None]) ** 2, 0.0).sum(axis=1)
-    var_dir = sigma_pos ** 2 / np.maximum(step ** 2 * np.maximum(spread, 1.0), 1e-12)
-    var_med = (1.2533 * sigma_yaw) ** 2 / np.maximum(count, 1)
+    spread = np.where(inside, (tv[idx] - t[:, None]) ** 2, 0.0).sum(axis=1)
+    var_dir = _noise(residuals) ** 2 / np.maximum(step ** 2 * np.maximum(spread, 1.0), 1e-12)
+    var_med = (1.2533 * _robust_sd(off)) ** 2 / np.maximum(count, 1)
     weight = np.where(count > 0, var_dir / np.maximum(var_dir + var_med, 1e-12), 0.0)
-    return weight * np.nan_to_num(med)
+    return weight * _window_median(off, idx, inside)
 
 
 def axial_mean(angles) -> float:
@@ -244,9 +265,8 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     if travel < min_travel:  # parked or creeping: one robust line over the whole track,
         # unless the vehicle stopped or started within the track (a line through a stop
         # misplaces frames by metres): the line must follow the local fit within what the
-        # estimates' noise lets the local fit wander (sigma from its median residual: the
-        # median of a 2-D normal's distance is 1.177 sigma)
-        sigma = float(np.median(np.linalg.norm(w[:, :2] - pos[valid, :2], axis=1))) / 1.177
+        # estimates' noise lets the local fit wander (sigma from its residuals)
+        sigma = _noise(w[:, :2] - pos[valid, :2])
         line, line_vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=1,
                                     query=t)
         off = np.linalg.norm(line[valid, :2] - pos[valid, :2], axis=1)
