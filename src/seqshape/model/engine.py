@@ -51,6 +51,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from seqshape.errors import ConfigError, MissingDependencyError, require
+from seqshape.model.graph_cache import cached_graph
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet, motion_features
 from seqshape.model.transforms import place_points
 
@@ -305,7 +306,6 @@ class OnnxEngine:
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         ort = require("onnxruntime", "the ONNX inference backend", "seqshape[fast]")
-        require("onnx", "exporting the network to ONNX", "seqshape[fast]")
         self.threads, self.motion = threads, model.motion
         batch, one = self.graph_bytes(model), self.one_graph_bytes(model)
         self.session = _Session(ort, batch, threads or 1)
@@ -334,12 +334,13 @@ class OnnxEngine:
         return self._spare
 
     def graph_bytes(self, model: ShapePoseNet) -> bytes:
-        """The ONNX model of :class:`StepGraph` this engine runs."""
-        return export_onnx(model)
+        """The ONNX model of :class:`StepGraph` this engine runs (exported, or read from the
+        disk cache of :mod:`seqshape.model.graph_cache`)."""
+        return cached_graph(model, "step", lambda: export_onnx(model))
 
     def one_graph_bytes(self, model: ShapePoseNet) -> bytes:
-        """The ONNX model of :class:`OneTrackGraph` this engine runs."""
-        return export_onnx(model, one_track=True)
+        """The ONNX model of :class:`OneTrackGraph` this engine runs (likewise cached)."""
+        return cached_graph(model, "one", lambda: export_onnx(model, one_track=True))
 
     def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
         """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""
@@ -362,10 +363,13 @@ class OnnxInt8Engine(OnnxEngine):
     tolerance = INT8_TOLERANCE
 
     def graph_bytes(self, model: ShapePoseNet) -> bytes:
-        return quantize_onnx(export_onnx(model), INT8_LAYERS)
+        return cached_graph(model, f"step-int8:{','.join(INT8_LAYERS)}",
+                            lambda: quantize_onnx(export_onnx(model), INT8_LAYERS))
 
     def one_graph_bytes(self, model: ShapePoseNet) -> bytes:
-        return quantize_onnx(export_onnx(model, one_track=True), INT8_LAYERS)
+        return cached_graph(model, f"one-int8:{','.join(INT8_LAYERS)}",
+                            lambda: quantize_onnx(export_onnx(model, one_track=True),
+                                                  INT8_LAYERS))
 
 
 class _Session:
@@ -459,6 +463,7 @@ def export_onnx(model: ShapePoseNet, one_track: bool = False) -> bytes:
     """The ONNX model (bytes) of one streaming step of ``model`` (:class:`StepGraph`), with
     dynamic batch and point axes; with ``one_track`` :class:`OneTrackGraph` (batch 1, dynamic
     point axis). PyTorch's exporter needs the ``onnx`` package."""
+    require("onnx", "exporting the network to ONNX", "seqshape[fast]")
     inputs, outputs = (ONE_INPUTS, ONE_OUTPUTS) if one_track else (GRAPH_INPUTS, GRAPH_OUTPUTS)
     graph = (OneTrackGraph if one_track else StepGraph)(model).eval()
     example = example_inputs(model, batch=1 if one_track else 2, points=5).arrays()

@@ -1,0 +1,160 @@
+"""A disk cache of the ONNX graphs the fast inference backends build at load time.
+
+Building an ONNX engine exports the network with PyTorch's exporter, which imports the ``onnx``
+package, and ``"onnx-int8"`` quantises the export as well. That is most of a process's start-up
+(measured: importing ``onnx`` 1-2 s, the two exports 0.8 s, against 0.1 s for ONNX Runtime's
+sessions; docs/model.md, "Start-up"), paid again by every ``seqshape label`` or ``evaluate``
+process and every ``Estimator.load`` in a new process. The graphs are a pure function of the
+weights, the configuration, the exporting code and the versions of the tools, so they are kept
+on disk under a key made of exactly these, and read back instead of exported.
+
+* Folder: ``$SEQSHAPE_CACHE_DIR``, else ``$XDG_CACHE_HOME/seqshape/onnx``, else
+  ``~/.cache/seqshape/onnx``. ``SEQSHAPE_CACHE_DIR=none`` (or ``off``) turns the cache off.
+* Key (:func:`graph_key`): SHA-256 of the graph's kind, every weight tensor (name, dtype, shape,
+  bytes), the model's kind and configuration, the source of the modules that define the
+  exported function (``network.py``, ``engine.py``, ``transforms.py``), and the versions of
+  seqshape, PyTorch, ``onnx`` and ONNX Runtime. A change of any of them is a new key, so a
+  stale graph is never read.
+* File: ``<key>.onnx`` holding the graph's bytes followed by their SHA-256 digest (32 bytes),
+  written atomically (:func:`seqshape._io.atomic_write_bytes`). A file whose digest does not
+  match (a damaged disk, a foreign file) is reported with a warning naming it, and the graph is
+  built and written again.
+* At most :data:`MAX_FILES` graphs are kept; writing one removes the least recently used
+  beyond that (a read refreshes a file's time).
+* A folder that cannot be created or written is not an error: the graph is built as without the
+  cache, with one warning per process.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import warnings
+from collections.abc import Callable
+from importlib import metadata
+from pathlib import Path
+
+from seqshape._io import atomic_write_bytes
+from seqshape._version import __version__
+
+log = logging.getLogger(__name__)
+
+#: The environment variable naming the cache folder ("none" or "off": no cache).
+ENV = "SEQSHAPE_CACHE_DIR"
+#: Graphs kept in the folder (two per model and backend: the batch and one-track graphs).
+MAX_FILES = 24
+FORMAT = b"seqshape-onnx-graph/1"
+_DIGEST = 32
+_SOURCES = ("network.py", "engine.py", "transforms.py")
+_warned: set[str] = set()
+
+
+def cache_dir() -> Path | None:
+    """The cache folder (module doc), or None when the cache is off."""
+    env = os.environ.get(ENV, "").strip()
+    if env.lower() in ("none", "off", "0", "false"):
+        return None
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME", "").strip()
+    base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
+    return base / "seqshape" / "onnx"
+
+
+def _version(dist: str) -> str:
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return "-"
+
+
+def _code_digest() -> bytes:
+    """SHA-256 of the source of the modules that define the exported graphs."""
+    h = hashlib.sha256()
+    here = Path(__file__).resolve().parent
+    for name in _SOURCES:
+        try:
+            h.update((here / name).read_bytes())
+        except OSError:  # no source shipped (a frozen install): versions only
+            h.update(name.encode())
+    return h.digest()
+
+
+def graph_key(model, kind: str) -> str:
+    """The cache key (hex SHA-256, module doc) of graph ``kind`` of ``model``
+    (a :class:`~seqshape.model.network.ShapePoseNet`)."""
+    h = hashlib.sha256(FORMAT)
+    meta = {"kind": kind, "model": model.kind, "cfg": model.cfg.to_dict(),
+            "versions": [__version__, _version("torch"), _version("onnx"),
+                         _version("onnxruntime")]}
+    h.update(json.dumps(meta, sort_keys=True, default=str).encode())
+    h.update(_code_digest())
+    for name, t in model.state_dict().items():
+        a = t.detach().cpu().contiguous().numpy()
+        h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _warn_once(key: str, message: str) -> None:
+    if key not in _warned:
+        _warned.add(key)
+        warnings.warn(message, RuntimeWarning, stacklevel=4)
+
+
+def _read(path: Path) -> bytes | None:
+    """The graph stored at ``path``, None when there is none; a damaged file is reported."""
+    try:
+        data = path.read_bytes()
+    except (FileNotFoundError, NotADirectoryError):  # not cached (yet); a bad folder: _store
+        return None
+    except OSError as exc:
+        _warn_once(str(path), f"{path}: cannot read the cached ONNX graph ({exc}); exporting")
+        return None
+    graph, digest = data[:-_DIGEST], data[-_DIGEST:]
+    if len(data) <= _DIGEST or hashlib.sha256(graph).digest() != digest:  # short: empty graph
+        _warn_once(str(path), f"{path}: cached ONNX graph is damaged (checksum mismatch); "
+                              "exporting it again")
+        return None
+    try:
+        os.utime(path)  # least recently used goes first (_prune)
+    except OSError:
+        pass
+    return graph
+
+
+def _prune(folder: Path, keep: int) -> None:
+    """Remove the least recently used graphs of ``folder`` beyond ``keep``."""
+    try:
+        files = sorted(folder.glob("*.onnx"), key=lambda p: p.stat().st_mtime, reverse=True)
+    except OSError:
+        return
+    for path in files[keep:]:
+        try:
+            path.unlink()
+        except OSError:
+            pass
+
+
+def cached_graph(model, kind: str, build: Callable[[], bytes]) -> bytes:
+    """Graph ``kind`` of ``model``: read from the cache, else ``build()`` and stored."""
+    folder = cache_dir()
+    if folder is None:
+        return build()
+    path = folder / f"{graph_key(model, kind)}.onnx"
+    graph = _read(path)
+    if graph is not None:
+        log.debug("ONNX graph %s read from %s", kind, path)
+        return graph
+    graph = build()
+    try:
+        atomic_write_bytes(path, graph + hashlib.sha256(graph).digest())
+    except OSError as exc:
+        _warn_once(str(folder), f"{folder}: cannot write the ONNX graph cache ({exc}); "
+                                f"graphs are exported in every process (set {ENV} to a "
+                                "writable folder, or to 'none')")
+        return graph
+    _prune(folder, MAX_FILES)
+    return graph
