@@ -18,13 +18,14 @@ one training) cheaply: the estimates are computed once.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 from _bench import print_table
 
 from seqshape.data.dataset import TrackDataset
 from seqshape.model.estimator import Estimator
-from seqshape.model.placement import load_refiner, targets
+from seqshape.model.placement import RefinerConfig, load_refiner, targets
 from seqshape.train.refiner import collect_frames, frame_points
 
 
@@ -47,10 +48,27 @@ def main() -> None:
     ap.add_argument("--baseline", default="baseline")
     ap.add_argument("--refiners", nargs="+", default=["pretrained"],
                     help="'pretrained' and/or refiner files")
+    ap.add_argument("--iterations", nargs="+", type=int, default=None,
+                    help="most passes of each refiner (RefinerConfig.iterations; default: "
+                         "the shipped setting)")
+    ap.add_argument("--repeat-shift", type=float, default=None,
+                    help="a further pass only where the last moved the centre this far (m; "
+                         "RefinerConfig.repeat_shift; default: the shipped setting)")
+    ap.add_argument("--repeat-min-points", type=int, default=None,
+                    help="... and the frame has this many points (default: the shipped setting)")
     args = ap.parse_args()
     ds = TrackDataset(args.data)
     ds = ds if args.split == "all" else ds.split(args.split)
-    refiners = {spec: load_refiner(spec) for spec in args.refiners}
+    shipped = RefinerConfig()
+    changes = {k: v for k, v in (("repeat_shift", args.repeat_shift),
+                                 ("repeat_min_points", args.repeat_min_points)) if v is not None}
+    refiners = {}
+    for spec in args.refiners:
+        for it in args.iterations or [shipped.iterations]:
+            cfg = dataclasses.replace(shipped, iterations=it, **changes)
+            name = spec if cfg == shipped else f"{spec} x{it}" + "".join(
+                f" {k}={v}" for k, v in changes.items())
+            refiners[name] = load_refiner(spec, cfg)
     rows = []
     for kind, spec in (("sequential", args.checkpoint), ("baseline", args.baseline)):
         est = Estimator.load(spec, kind=kind, threads=1, backend="torch")

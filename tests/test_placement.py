@@ -125,6 +125,35 @@ def test_corrections_are_clipped_and_sparse_frames_left_alone():
     np.testing.assert_array_equal(p[1], pose[1])
 
 
+def test_further_passes_only_where_the_last_one_moved_far_enough():
+    """A constant 0.5 m forward correction (0.5 m x s for a long vehicle), three passes at
+    most, again only where the previous pass moved the centre >= 0.3 m with >= 6 points."""
+    ref = _shift_refiner(dx=0.5, dy=0.0, dz=0.0, dyaw=0.0)
+    ref.config = P.RefinerConfig(iterations=3, repeat_shift=0.3, repeat_min_points=6)
+    poses = np.array([[10.0, 0, 0, 0], [10.0, 0, 0, 0], [10.0, 0, 0, 0]])
+    frames = [np.full((8, 3), [10.0, 0, 0]), np.full((4, 3), [10.0, 0, 0]),
+              np.full((8, 3), [10.0, 0, 0])]
+    extents = np.array([[4.0, 1.8, 1.5], [4.0, 1.8, 1.5], [4.0, 1.8, 1.5]])
+    p = ref.refine_poses(frames, poses, extents)
+    np.testing.assert_allclose(p[:, 0], [11.5, 10.5, 11.5], atol=1e-6)  # 4 points: one pass
+    ref.config = P.RefinerConfig(iterations=3, repeat_shift=0.6, repeat_min_points=6)
+    np.testing.assert_allclose(ref.refine_poses(frames, poses, extents)[:, 0],
+                               [10.5, 10.5, 10.5], atol=1e-6)  # 0.5 m < 0.6 m: converged
+    # repeat_shift 0, repeat_min_points 1: every pass on every frame, as passes applied one
+    # after the other with their seeds
+    ref2 = _shift_refiner(dx=0.5, dy=0.0, dz=0.0, dyaw=0.0, random_head=True)
+    ref2.config = P.RefinerConfig(iterations=2, repeat_shift=0.0, repeat_min_points=1)
+    both = ref2.refine_poses(frames, poses, extents, seeds=[4, 5, 6])
+    step = poses.copy()
+    for it in range(2):
+        ref2.config = P.RefinerConfig(iterations=1)
+        ref2.seed = 1000003 * it
+        step = ref2.refine_poses(frames, step, extents, seeds=[4, 5, 6])
+    np.testing.assert_array_equal(both, step)
+    with pytest.raises(P.ConfigError, match="repeat_shift"):
+        P.RefinerConfig(repeat_shift=-1.0)
+
+
 def test_empty_frames_carry_the_last_correction():
     ref = _shift_refiner(dx=0.3, dy=0.0, dz=0.0, dyaw=0.0)
     poses = np.array([[10.0, 0, 0, 0], [11.0, 0, 0, 0], [12.0, 0, 0, math.pi / 2]])

@@ -166,18 +166,29 @@ def build_net(width: int = WIDTH):
 
 @dataclass(frozen=True)
 class RefinerConfig:
-    """How the refiner is applied: ``iterations`` passes (each re-reads the points in the
-    corrected frame), ``min_points`` below which a frame is left alone, ``max_shift`` (m) and
-    ``max_turn`` (rad) clip each pass's correction."""
+    """How the refiner is applied: up to ``iterations`` passes (each re-reads the points in
+    the corrected frame), ``min_points`` below which a frame is left alone, ``max_shift`` (m)
+    and ``max_turn`` (rad) clip each pass's correction. A pass after the first runs only on
+    the frames whose previous pass moved the centre by at least ``repeat_shift`` (m, in the
+    ground plane) and that have at least ``repeat_min_points`` points: a large correction
+    means the points were read in a box frame far from the vehicle's, so a second reading
+    from the corrected frame is better informed; a small one has converged. One pass is the
+    default: further passes help long vehicles on synthetic data and can compound a wrong
+    first correction on real cars (docs/model.md, "Further passes")."""
 
     iterations: int = 1
     min_points: int = 1
     max_shift: float = 1.5
     max_turn: float = 0.35
+    repeat_shift: float = 0.4
+    repeat_min_points: int = 30
 
     def __post_init__(self):
         if self.iterations < 0:
             raise ConfigError(f"RefinerConfig.iterations must be >= 0, got {self.iterations}")
+        if not self.repeat_shift >= 0:
+            raise ConfigError(f"RefinerConfig.repeat_shift must be >= 0, got "
+                              f"{self.repeat_shift}")
 
 
 class PlacementRefiner:
@@ -283,6 +294,9 @@ class PlacementRefiner:
             poses[ok, 1] += s * shift[:, 0] + c * shift[:, 1]
             poses[ok, 2] += shift[:, 2]
             poses[ok, 3] = yaw + turn
+            moved = np.hypot(shift[:, 0], shift[:, 1])
+            ok = [i for i, m in zip(ok, moved, strict=True)
+                  if m >= cfg.repeat_shift and len(points[i]) >= cfg.repeat_min_points]
         return poses
 
     def corrections_of(self, frames: Sequence[np.ndarray], complete: np.ndarray,
