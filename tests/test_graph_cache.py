@@ -162,3 +162,10 @@ def test_least_recently_used_graphs_are_pruned(folder, monkeypatch):
     assert cached_graph(net, "b", lambda: b"rebuilt") == b"b"  # a hit refreshes its time
     cached_graph(net, "d", lambda: b"d")
     assert {p.name for p in _graphs(folder)} == {f"{graph_key(net, k)}.onnx" for k in "bd"}
+    # the byte budget: a large graph pushes the others out, and is itself kept
+    monkeypatch.setattr(graph_cache, "MAX_FILES", 10)
+    monkeypatch.setattr(graph_cache, "MAX_BYTES", 100)
+    cached_graph(net, "e", lambda: b"e" * 90)
+    assert {p.name for p in _graphs(folder)} == {f"{graph_key(net, 'e')}.onnx"}
+    cached_graph(net, "f", lambda: b"f" * 200)  # over the budget alone: kept, being the newest
+    assert {p.name for p in _graphs(folder)} == {f"{graph_key(net, 'f')}.onnx"}

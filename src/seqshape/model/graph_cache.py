@@ -19,8 +19,9 @@ on disk under a key made of exactly these, and read back instead of exported.
   written atomically (:func:`seqshape._io.atomic_write_bytes`). A file whose digest does not
   match (a damaged disk, a foreign file) is reported with a warning naming it, and the graph is
   built and written again.
-* At most :data:`MAX_FILES` graphs are kept; writing one removes the least recently used
-  beyond that (a read refreshes a file's time).
+* At most :data:`MAX_FILES` graphs and :data:`MAX_BYTES` bytes are kept; writing one removes
+  the least recently used beyond that (a read refreshes a file's time), never the one just
+  written.
 * A folder that cannot be created or written is not an error: the graph is built as without the
   cache, with one warning per process.
 """
@@ -43,8 +44,10 @@ log = logging.getLogger(__name__)
 
 #: The environment variable naming the cache folder ("none" or "off": no cache).
 ENV = "SEQSHAPE_CACHE_DIR"
-#: Graphs kept in the folder (two per model and backend: the batch and one-track graphs).
+#: Graphs kept in the folder (two per model and backend: the batch and one-track graphs)
+#: and their total size (a `small` model's graph is about 11 MB, a `paper` one's 65 MB).
 MAX_FILES = 24
+MAX_BYTES = 1 << 29
 FORMAT = b"seqshape-onnx-graph/1"
 _DIGEST = 32
 _SOURCES = ("network.py", "engine.py", "transforms.py")
@@ -125,13 +128,22 @@ def _read(path: Path) -> bytes | None:
     return graph
 
 
-def _prune(folder: Path, keep: int) -> None:
-    """Remove the least recently used graphs of ``folder`` beyond ``keep``."""
-    try:
-        files = sorted(folder.glob("*.onnx"), key=lambda p: p.stat().st_mtime, reverse=True)
-    except OSError:
-        return
-    for path in files[keep:]:
+def _prune(folder: Path, newest: Path) -> None:
+    """Remove the least recently used graphs of ``folder`` beyond :data:`MAX_FILES` files or
+    :data:`MAX_BYTES` bytes, keeping ``newest``."""
+    files = []
+    for path in folder.glob("*.onnx"):
+        try:
+            st = path.stat()
+        except OSError:  # removed meanwhile by another process
+            continue
+        files.append((path != newest, -st.st_mtime, st.st_size, path))
+    files.sort(key=lambda f: f[:2])  # the new file first, then the most recently used
+    total = 0
+    for n, (_, _, size, path) in enumerate(files):
+        total += size
+        if n == 0 or (n < MAX_FILES and total <= MAX_BYTES):
+            continue
         try:
             path.unlink()
         except OSError:
@@ -156,5 +168,5 @@ def cached_graph(model, kind: str, build: Callable[[], bytes]) -> bytes:
                                 f"graphs are exported in every process (set {ENV} to a "
                                 "writable folder, or to 'none')")
         return graph
-    _prune(folder, MAX_FILES)
+    _prune(folder, path)
     return graph
