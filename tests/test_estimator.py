@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from seqshape.data.windows import points_length
+from seqshape.data.windows import points_length, points_lengths
 from seqshape.errors import ConfigError, DataError
 from seqshape.model import Estimator, ModelConfig, ShapePoseNet
 from seqshape.model import estimator as estimator_module
@@ -401,6 +401,23 @@ def test_points_length_matches_numpy_percentiles():
         ref = np.percentile(proj, 99, axis=0) - np.percentile(proj, 1, axis=0)
         assert points_length(p) == pytest.approx(ref.max(), rel=1e-5)
     assert points_length(np.zeros((1, 3))) == 0.0
+
+
+def test_points_lengths_equal_points_length_frame_by_frame():
+    """The batched lengths of a step are the per-frame ones bit for bit: frames of 0-400
+    points, float32 and float64, repeated points (ties in the sort), one batch of one frame."""
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        frames = []
+        for _ in range(int(rng.integers(1, 40))):
+            n = int(rng.choice([0, 1, 2, 3, int(rng.integers(2, 400))]))
+            f = rng.normal(size=(n, 3)) * rng.uniform(0.1, 5.0, 3) + rng.uniform(-50, 50, 3)
+            if n > 3 and rng.random() < 0.3:
+                f[: n // 2] = f[0]
+            frames.append(f.astype(np.float32) if rng.random() < 0.5 else f)
+        expected = np.array([points_length(f) for f in frames])
+        np.testing.assert_array_equal(points_lengths(frames), expected)
+    assert points_lengths([]).shape == (0,)
 
 
 # ------------------------------------------------------------- issue 18: estimator semantics

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from seqshape.data.windows import points_length, resample_frame
+from seqshape.data.windows import points_lengths, resample_frame
 from seqshape.errors import ConfigError, DataError
 from seqshape.model.config import ModelConfig
 from seqshape.model.engine import (
@@ -367,10 +367,10 @@ class Estimator:
         cfg = self.model.cfg
         if cfg.scale_norm == "none":
             return None
-        lengths = []
+        lengths, heres = [], points_lengths(frames)
         for i, (st, f) in enumerate(zip(states, frames, strict=True)):
             if len(f):
-                here = points_length(f)
+                here = float(heres[i])
                 st.length = max(st.length, here) if self.recurrent else here
             hint = _length_hint(sizes, i)
             lengths.append(max(st.length, _class_floor(classes, i)) if hint is None else hint)

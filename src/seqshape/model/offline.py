@@ -60,7 +60,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from seqshape.data.windows import points_length, resample_frame
+from seqshape.data.windows import points_lengths, resample_frame
 from seqshape.errors import ConfigError
 from seqshape.geometry import yaw_to_rotmat
 from seqshape.model.estimator import Estimate, _class_floor, _length_hint, check_points
@@ -422,9 +422,8 @@ def _scales(model, frames: list[np.ndarray], size, cls) -> np.ndarray | None:
     hint = _length_hint([size], 0)
     floor = _class_floor([cls], 0)
     length, out = 0.0, []
-    for f in frames:
+    for f, here in zip(frames, points_lengths(frames).tolist(), strict=True):
         if len(f):
-            here = points_length(f)
             length = max(length, here) if model.recurrent else here
         out.append(mcfg.scale_for(hint if hint is not None else max(length, floor)))
     return np.asarray(out, dtype=np.float64)
