@@ -82,12 +82,14 @@ def tables(metrics: dict, title: str) -> None:
                          _f(s["centre_cm_mean"]), _f(s["radial_cm_median"]),
                          _f(s["rot_deg_median"]), _f(s["rot_deg_without_flips_median"]),
                          _f(s["flip_pct"]), _f(s["length_abs_cm_median"]),
+                         _f(s.get("length_rel_abs_pct_median")),
                          _f(s["width_abs_cm_median"]), _f(s.get("cd_cm_mean")),
                          _f(s.get("ref_to_est_cm_mean")),
                          f'{_f(s.get("est_near_out_pct_mean"))} / {_f(s.get("est_far_out_pct_mean"))}',
                          f'{_f(s.get("ref_near_out_pct_mean"))} / {_f(s.get("ref_far_out_pct_mean"))}'])
     print_table(["group", "method", "frames", "centre med", "centre mean", "radial med",
-                 "yaw med", "yaw w/o flips med", "flips %", "|length| med", "|width| med",
+                 "yaw med", "yaw w/o flips med", "flips %", "|length| med", "|length| % med",
+                 "|width| med",
                  "CD vs ref mean", "ref->est mean", "points out near / far % (estimate)",
                  "(annotation)"], rows)
     print("\ncentre error (cm, median) by points per frame\n")

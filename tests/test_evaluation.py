@@ -426,6 +426,45 @@ def test_flip_rate_axis_error_and_breakdown_on_a_flipped_track():
     assert points["0"]["sequential"]["n_frames"] == 1
 
 
+@dataclass
+class Stretcher(Flipper):
+    """The true pose (never flipped) with a box cloud ``factor`` times the true length."""
+
+    factor: float = 1.1
+
+    def step(self, track_ids, point_lists):
+        out = []
+        for tid in track_ids:
+            tr = self.tracks[tid]
+            t = self.t.get(tid, detection_span(tr)[0])
+            self.t[tid] = t + 1
+            size = np.asarray(tr.size, dtype=np.float64) * [self.factor, 1.0, 1.0]
+            shape = canonical_to_sensor(box_surface(2048, t, size), tr.poses[t])
+            out.append(Estimate(tid, shape, tr.poses[t], len(tr.points[t])))
+        return out
+
+
+def test_relative_length_error_of_a_truck_and_a_car():
+    """A truck and a car both estimated 10 % too long: the same relative error, an absolute
+    one in proportion to their lengths; the breakdown reports |length| % by class group."""
+    from seqshape.evaluation.report import summarize
+
+    tracks = [make_real_track(0, "car", SIZE, False), make_real_track(1, "truck", TRUCK, False)]
+    est = Stretcher({tr.track_id: tr for tr in tracks}, factor=1.1)
+    res = evaluate_tracks({"sequential": est}, tracks, emd_every=0, workers=0)
+    rec = res.of("sequential")
+    truck = rec["class"] == "truck"
+    # extents are the 1st-99th percentile spread of the cloud: a little under the box
+    np.testing.assert_allclose(rec["length_rel_err"], 0.1, atol=0.015)
+    np.testing.assert_allclose(rec["length_err_m"][truck], 0.1 * TRUCK[0], atol=0.015 * TRUCK[0])
+    np.testing.assert_allclose(rec["length_rel_err"],
+                               rec["length_err_m"] / np.where(truck, TRUCK[0], SIZE[0]))
+    groups = summarize(res)["breakdown"]["class_group"]
+    for group in ("car", "larger (van/truck/bus/trailer)"):
+        assert groups[group]["sequential"]["length_rel_abs_pct_median"] == pytest.approx(
+            10.0, abs=1.5)
+
+
 def test_evaluate_cli_on_a_real_like_dataset(tmp_path):
     pytest.importorskip("seqshape.model.estimator")
     from seqshape.cli import main

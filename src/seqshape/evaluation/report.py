@@ -93,7 +93,8 @@ BREAKDOWN_STATS = {"centre_cm": ("trans_m", 100.0, False), **POSE_EXTENT_METRICS
                    "est_near_out_pct": ("est_near_out", 100.0, False),
                    "est_far_out_pct": ("est_far_out", 100.0, False),
                    "ref_near_out_pct": ("ref_near_out", 100.0, False),
-                   "ref_far_out_pct": ("ref_far_out", 100.0, False)}
+                   "ref_far_out_pct": ("ref_far_out", 100.0, False),
+                   "length_rel_abs_pct": ("length_rel_err", 100.0, True)}
 LARGER = ("van", "truck", "bus", "trailer")
 #: Distance bins (m, lower edges; the last is open) and points-per-frame bins (lower edges).
 DISTANCE_BINS = (0.0, 10.0, 20.0, 30.0, 50.0)
@@ -234,6 +235,8 @@ def group_stats(rec: dict[str, np.ndarray], sel: np.ndarray) -> dict[str, Any]:
     out: dict[str, Any] = {"n_frames": int(sel.sum()),
                            "n_tracks": int(len(np.unique(rec["track_id"][sel])))}
     for key, (col, scale, absolute) in BREAKDOWN_STATS.items():
+        if col not in rec:  # records of an older version
+            continue
         v = rec[col][sel] * scale
         v = np.abs(v) if absolute else v
         out[f"{key}_median"], out[f"{key}_mean"] = _median(v), _mean(v)
@@ -398,7 +401,8 @@ def _real_notes(settings: dict[str, Any], methods: list[str]) -> list[str]:
             "radial = signed error along the line of sight (+: estimate too far); |tang| = "
             "absolute error across it; yaw w/o flips = over frames without a 180-degree flip; "
             "yaw mod 180 = ignoring the direction of travel; flips = share of frames flipped; "
-            "length, width = signed extent errors (estimate - box), |.| absolute; "
+            "length, width = signed extent errors (estimate - box), |.| absolute, "
+            "|length| % = |length error| / true length; "
             "CD vs reference."]
 
 
@@ -411,6 +415,7 @@ _BD_COLUMNS = (("frames", "n_frames", None), ("centre", "centre_cm", 1),
                ("yaw", "rot_deg", 1), ("yaw w/o flips", "rot_deg_without_flips", 1),
                ("yaw mod 180", "rot_axis_deg", 1), ("flips %", "flip_pct", None),
                ("length", "length_err_cm", 1), ("\\|length\\|", "length_abs_cm", 1),
+               ("\\|length\\| %", "length_rel_abs_pct", 1),
                ("width", "width_err_cm", 1), ("\\|width\\|", "width_abs_cm", 1),
                ("CD vs ref.", "cd_cm", 2))
 

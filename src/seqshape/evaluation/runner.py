@@ -29,7 +29,8 @@ What is computed, per method and per scored frame ``t`` of a track:
 * ``rot_axis_rad``: the rotation error ignoring the direction of travel,
   ``min(rot, pi - rot)`` in ``[0, pi/2]`` (a box flipped by 180 degrees scores 0);
 * ``length_err_m``, ``width_err_m``: signed errors (estimate - truth) of the estimate's extents
-  against the true box size (:func:`estimate_extents`);
+  against the true box size (:func:`estimate_extents`); ``length_rel_err``: the length error
+  as a fraction of the true length (the issue's yardstick for trucks and buses: 10 %);
 * ``est_near_out``, ``est_far_out``: the share of frame t's points outside the estimate's
   bird's-eye footprint (:func:`footprint`) on the side facing the sensor / the far side
   (:func:`outside_shares`); ``ref_near_out``, ``ref_far_out``: the same for the true box. On
@@ -81,7 +82,7 @@ log = logging.getLogger(__name__)
 FIELDS = ("method", "track_id", "frame", "n_det", "n_points", "distance_m",
           "cd_m", "emd_m", "trans_m", "rot_rad", "cd_true_pose_m", "class", "radial_m",
           "tangential_m", "rot_axis_rad", "length_err_m", "width_err_m", "ref_to_est_m",
-          "est_near_out", "est_far_out", "ref_near_out", "ref_far_out")
+          "est_near_out", "est_far_out", "ref_near_out", "ref_far_out", "length_rel_err")
 _STR_FIELDS = ("method", "track_id", "class")
 _INT_FIELDS = ("frame", "n_det", "n_points")
 #: Percentiles of the estimated cloud's canonical coordinates taken as its extents.
@@ -424,6 +425,11 @@ def radial_tangential(pose_pred, pose_gt) -> tuple[float, float]:
     return float(d @ u), float(d @ np.array([-u[1], u[0]]))
 
 
+def _relative(err: float, true: float) -> float:
+    """``err / true``; NaN when the true value is not a positive number."""
+    return float(err) / float(true) if np.isfinite(true) and true > 0 else np.nan
+
+
 def _chamfer(a: np.ndarray, b: np.ndarray) -> float:
     return float(nearest_distances(a, b).mean() + nearest_distances(b, a).mean())
 
@@ -456,7 +462,7 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
                   tangential_m=tangential, rot_axis_rad=min(rot, np.pi - rot),
                   length_err_m=length_err, width_err_m=width_err, ref_to_est_m=ref_to_est,
                   est_near_out=est_out[0], est_far_out=est_out[1], ref_near_out=ref_out[0],
-                  ref_far_out=ref_out[1])
+                  ref_far_out=ref_out[1], length_rel_err=_relative(length_err, track.size[0]))
     if do_emd and gt is not None:
         col.add_emd(row, subsample_pair(pred, gt, emd_points, stable_seed(track.track_id, t)))
 
