@@ -391,10 +391,13 @@ class Flipper:
             tr = self.tracks[tid]
             t = self.t.get(tid, detection_span(tr)[0])
             self.t[tid] = t + 1
-            pose = tr.poses[t] + [0, 0, 0, np.pi * (t % 2)]
-            shape = canonical_to_sensor(box_surface(512, t, tr.size), pose)
+            pose, shape = self.estimate(tr, t)
             out.append(Estimate(tid, shape, pose, len(tr.points[t])))
         return out
+
+    def estimate(self, tr, t):
+        pose = tr.poses[t] + [0, 0, 0, np.pi * (t % 2)]
+        return pose, canonical_to_sensor(box_surface(512, t, tr.size), pose)
 
 
 def test_flip_rate_axis_error_and_breakdown_on_a_flipped_track():
@@ -432,16 +435,9 @@ class Stretcher(Flipper):
 
     factor: float = 1.1
 
-    def step(self, track_ids, point_lists):
-        out = []
-        for tid in track_ids:
-            tr = self.tracks[tid]
-            t = self.t.get(tid, detection_span(tr)[0])
-            self.t[tid] = t + 1
-            size = np.asarray(tr.size, dtype=np.float64) * [self.factor, 1.0, 1.0]
-            shape = canonical_to_sensor(box_surface(2048, t, size), tr.poses[t])
-            out.append(Estimate(tid, shape, tr.poses[t], len(tr.points[t])))
-        return out
+    def estimate(self, tr, t):
+        size = np.asarray(tr.size, dtype=np.float64) * [self.factor, 1.0, 1.0]
+        return tr.poses[t], canonical_to_sensor(box_surface(2048, t, size), tr.poses[t])
 
 
 def test_relative_length_error_of_a_truck_and_a_car():
