@@ -179,9 +179,11 @@ def test_grow_instances_equals_the_unfiltered_reference():
     a, b, c = blob([8, 6, 0], 300, rng), blob([9, 9.5, 0], 300, rng), blob([40, -20, 0], 50, rng)
     clutter = rng.uniform([-60, -60, -2], [60, 60, 3], (20000, 3))
     outside = np.vstack([a[150:], b[150:], clutter])
-    parts = [a[:150], b[:150], c[:10], np.zeros((0, 3))]
+    lone = blob([200, 200, 0], 30, rng)  # nothing outside the image within its reach
+    parts = [a[:150], b[:150], c[:10], np.zeros((0, 3)), lone]
     fast, ref = grow_instances(parts, outside), _grow_reference(parts, outside)
     for f, r in zip(fast, ref, strict=True):
         assert np.array_equal(f, r)
     assert len(fast[0]) > 250 and len(fast[1]) > 250  # the cut parts did come back
+    assert np.array_equal(fast[4], lone)
 

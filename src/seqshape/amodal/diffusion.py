@@ -388,6 +388,8 @@ def grow_instances(parts: Sequence[np.ndarray], outside, cluster_gap: float = 0.
         if len(p) == 0:
             continue
         near = _in_reach(outside, xs, p.min(0) - max_grow, p.max(0) + max_grow)
+        if len(near) == 0:  # nothing outside the image within reach: no tree to build
+            continue
         d, _ = cKDTree(p).query(outside[near], distance_upper_bound=max_grow)  # (K,)
         found = np.isfinite(d)
         cand, d = near[found], d[found]
