@@ -45,7 +45,12 @@ def _inputs(seed: int):
 
 
 def _graphs(folder) -> list:
-    return sorted(folder.glob("*.onnx"))
+    return sorted(folder.glob(f"{graph_cache.PREFIX}*.onnx"))
+
+
+def _name(net, kind: str) -> str:
+    """The cache's file name of graph ``kind`` of ``net``."""
+    return f"{graph_cache.PREFIX}{graph_key(net, kind)}.onnx"
 
 
 def test_second_engine_reads_the_graphs_and_computes_the_same(folder, monkeypatch):
@@ -81,7 +86,7 @@ def test_key_follows_weights_configuration_and_kind():
 def test_a_damaged_file_is_reported_and_rebuilt(folder):
     net = _net()
     expected = [np.asarray(a) for a in make_engine(net, "onnx").run(_inputs(5))]
-    path = folder / f"{graph_key(net, 'step')}.onnx"
+    path = folder / _name(net, "step")
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0xFF
     path.write_bytes(bytes(data))
@@ -154,18 +159,21 @@ def test_unwritable_folder_exports_and_warns_once(tmp_path, monkeypatch):
 def test_least_recently_used_graphs_are_pruned(folder, monkeypatch):
     monkeypatch.setattr(graph_cache, "MAX_FILES", 2)
     net = _net()
+    folder.mkdir(parents=True)
+    (folder / "users-own-model.onnx").write_bytes(b"not ours")  # never removed
     for t, kind in enumerate("abc"):
         cached_graph(net, kind, lambda kind=kind: kind.encode())
-        os.utime(folder / f"{graph_key(net, kind)}.onnx", (1000 + t, 1000 + t))
+        os.utime(folder / _name(net, kind), (1000 + t, 1000 + t))
     names = {p.name for p in _graphs(folder)}
-    assert names == {f"{graph_key(net, k)}.onnx" for k in "bc"}
+    assert names == {_name(net, k) for k in "bc"}
     assert cached_graph(net, "b", lambda: b"rebuilt") == b"b"  # a hit refreshes its time
     cached_graph(net, "d", lambda: b"d")
-    assert {p.name for p in _graphs(folder)} == {f"{graph_key(net, k)}.onnx" for k in "bd"}
+    assert {p.name for p in _graphs(folder)} == {_name(net, k) for k in "bd"}
     # the byte budget: a large graph pushes the others out, and is itself kept
     monkeypatch.setattr(graph_cache, "MAX_FILES", 10)
     monkeypatch.setattr(graph_cache, "MAX_BYTES", 100)
     cached_graph(net, "e", lambda: b"e" * 90)
-    assert {p.name for p in _graphs(folder)} == {f"{graph_key(net, 'e')}.onnx"}
+    assert {p.name for p in _graphs(folder)} == {_name(net, "e")}
     cached_graph(net, "f", lambda: b"f" * 200)  # over the budget alone: kept, being the newest
-    assert {p.name for p in _graphs(folder)} == {f"{graph_key(net, 'f')}.onnx"}
+    assert {p.name for p in _graphs(folder)} == {_name(net, "f")}
+    assert (folder / "users-own-model.onnx").read_bytes() == b"not ours"

@@ -21,7 +21,8 @@ on disk under a key made of exactly these, and read back instead of exported.
   built and written again.
 * At most :data:`MAX_FILES` graphs and :data:`MAX_BYTES` bytes are kept; writing one removes
   the least recently used beyond that (a read refreshes a file's time), never the one just
-  written.
+  written. Only files named like the cache's own are ever removed (the folder may be one
+  the user also keeps other files in).
 * A folder that cannot be created or written is not an error: the graph is built as without the
   cache, with one warning per process.
 """
@@ -49,6 +50,7 @@ ENV = "SEQSHAPE_CACHE_DIR"
 MAX_FILES = 24
 MAX_BYTES = 1 << 29
 FORMAT = b"seqshape-onnx-graph/1"
+PREFIX = "seqshape-graph-"  # the cache's file names: PREFIX + key + ".onnx"
 _DIGEST = 32
 _SOURCES = ("network.py", "engine.py", "transforms.py")
 _warned: set[str] = set()
@@ -111,8 +113,8 @@ def _read(path: Path) -> bytes | None:
     """The graph stored at ``path``, None when there is none; a damaged file is reported."""
     try:
         data = path.read_bytes()
-    except (FileNotFoundError, NotADirectoryError):  # not cached (yet); a bad folder: _store
-        return None
+    except (FileNotFoundError, NotADirectoryError):  # not cached yet (a folder that is not
+        return None  # one is reported when the graph is written)
     except OSError as exc:
         _warn_once(str(path), f"{path}: cannot read the cached ONNX graph ({exc}); exporting")
         return None
@@ -132,7 +134,7 @@ def _prune(folder: Path, newest: Path) -> None:
     """Remove the least recently used graphs of ``folder`` beyond :data:`MAX_FILES` files or
     :data:`MAX_BYTES` bytes, keeping ``newest``."""
     files = []
-    for path in folder.glob("*.onnx"):
+    for path in folder.glob(f"{PREFIX}*.onnx"):
         try:
             st = path.stat()
         except OSError:  # removed meanwhile by another process
@@ -155,7 +157,7 @@ def cached_graph(model, kind: str, build: Callable[[], bytes]) -> bytes:
     folder = cache_dir()
     if folder is None:
         return build()
-    path = folder / f"{graph_key(model, kind)}.onnx"
+    path = folder / f"{PREFIX}{graph_key(model, kind)}.onnx"
     graph = _read(path)
     if graph is not None:
         log.debug("ONNX graph %s read from %s", kind, path)
