@@ -56,12 +56,15 @@ def main() -> None:
                          "RefinerConfig.repeat_shift; default: the shipped setting)")
     ap.add_argument("--repeat-min-points", type=int, default=None,
                     help="... and the frame has this many points (default: the shipped setting)")
+    ap.add_argument("--repeat-min-length", type=float, default=None,
+                    help="... and the estimate is this long (m; default: the shipped setting)")
     args = ap.parse_args()
     ds = TrackDataset(args.data)
     ds = ds if args.split == "all" else ds.split(args.split)
     shipped = RefinerConfig()
     changes = {k: v for k, v in (("repeat_shift", args.repeat_shift),
-                                 ("repeat_min_points", args.repeat_min_points)) if v is not None}
+                                 ("repeat_min_points", args.repeat_min_points),
+                                 ("repeat_min_length", args.repeat_min_length)) if v is not None}
     refiners = {}
     for spec in args.refiners:
         for it in args.iterations or [shipped.iterations]:

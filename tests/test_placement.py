@@ -96,6 +96,7 @@ def test_untrained_refiner_is_the_identity():
 
 def test_correction_moves_pose_along_its_axes_and_shape_rigidly():
     ref = _shift_refiner(dx=0.5, dy=-0.2, dz=0.1, dyaw=0.1)
+    ref.config = P.RefinerConfig(iterations=1)  # one pass, also for the 9 m vehicle below
     pose = np.array([[10.0, 4.0, -1.0, math.pi / 2]])
     canon = np.random.default_rng(1).uniform(-1, 1, size=(200, 3)) * [2, 0.9, 0.7]  # 4 m
     from seqshape.geometry import canonical_to_sensor
@@ -129,27 +130,37 @@ def test_further_passes_only_where_the_last_one_moved_far_enough():
     """A constant 0.5 m forward correction (0.5 m x s for a long vehicle), three passes at
     most, again only where the previous pass moved the centre >= 0.3 m with >= 6 points."""
     ref = _shift_refiner(dx=0.5, dy=0.0, dz=0.0, dyaw=0.0)
-    ref.config = P.RefinerConfig(iterations=3, repeat_shift=0.3, repeat_min_points=6)
+    ref.config = P.RefinerConfig(iterations=3, repeat_shift=0.3, repeat_min_points=6,
+                                 repeat_min_length=0.0)
     poses = np.array([[10.0, 0, 0, 0], [10.0, 0, 0, 0], [10.0, 0, 0, 0]])
     frames = [np.full((8, 3), [10.0, 0, 0]), np.full((4, 3), [10.0, 0, 0]),
               np.full((8, 3), [10.0, 0, 0])]
     extents = np.array([[4.0, 1.8, 1.5], [4.0, 1.8, 1.5], [4.0, 1.8, 1.5]])
     p = ref.refine_poses(frames, poses, extents)
     np.testing.assert_allclose(p[:, 0], [11.5, 10.5, 11.5], atol=1e-6)  # 4 points: one pass
-    ref.config = P.RefinerConfig(iterations=3, repeat_shift=0.6, repeat_min_points=6)
+    ref.config = P.RefinerConfig(iterations=3, repeat_shift=0.6, repeat_min_points=6,
+                                 repeat_min_length=0.0)
     np.testing.assert_allclose(ref.refine_poses(frames, poses, extents)[:, 0],
                                [10.5, 10.5, 10.5], atol=1e-6)  # 0.5 m < 0.6 m: converged
     # repeat_shift 0, repeat_min_points 1: every pass on every frame, as passes applied one
     # after the other with their seeds
     ref2 = _shift_refiner(dx=0.5, dy=0.0, dz=0.0, dyaw=0.0, random_head=True)
-    ref2.config = P.RefinerConfig(iterations=2, repeat_shift=0.0, repeat_min_points=1)
+    ref2.config = P.RefinerConfig(iterations=2, repeat_shift=0.0, repeat_min_points=1,
+                                  repeat_min_length=0.0)
     both = ref2.refine_poses(frames, poses, extents, seeds=[4, 5, 6])
     step = poses.copy()
     for it in range(2):
-        ref2.config = P.RefinerConfig(iterations=1)
+        ref2.config = P.RefinerConfig(iterations=1, repeat_min_length=0.0)
         ref2.seed = 1000003 * it
         step = ref2.refine_poses(frames, step, extents, seeds=[4, 5, 6])
     np.testing.assert_array_equal(both, step)
+    # the defaults: three passes for an estimate of 6 m or more, one below
+    ref.config = P.RefinerConfig()
+    long = extents * [[1.0, 1, 1], [2.0, 1, 1], [1.5, 1, 1]]  # 4, 8 and 6 m
+    frames8 = [np.full((8, 3), [10.0, 0, 0])] * 3
+    moved = ref.refine_poses(frames8, poses, long)[:, 0] - poses[:, 0]
+    s8, s6 = P.scale_of(8.0), P.scale_of(6.0)  # the correction is in units of the scale
+    np.testing.assert_allclose(moved, [0.5, 3 * 0.5 * s8, 3 * 0.5 * s6], atol=1e-6)
     with pytest.raises(P.ConfigError, match="repeat_shift"):
         P.RefinerConfig(repeat_shift=-1.0)
 

@@ -169,19 +169,21 @@ class RefinerConfig:
     """How the refiner is applied: up to ``iterations`` passes (each re-reads the points in
     the corrected frame), ``min_points`` below which a frame is left alone, ``max_shift`` (m)
     and ``max_turn`` (rad) clip each pass's correction. A pass after the first runs only on
-    the frames whose previous pass moved the centre by at least ``repeat_shift`` (m, in the
-    ground plane) and that have at least ``repeat_min_points`` points: a large correction
-    means the points were read in a box frame far from the vehicle's, so a second reading
-    from the corrected frame is better informed; a small one has converged. One pass is the
-    default: further passes help long vehicles on synthetic data and can compound a wrong
-    first correction on real cars (docs/model.md, "Further passes")."""
+    the frames whose estimate is at least ``repeat_min_length`` m long (the extents given),
+    whose previous pass moved the centre by at least ``repeat_shift`` (m, in the ground plane)
+    and that have at least ``repeat_min_points`` points. The default: up to three passes for
+    vehicles of 6 m and more (trucks, buses, trailers: their errors are large against the
+    per-pass clip and the training disturbances), one for cars, on which further passes
+    helped nothing on synthetic data and compounded a wrong first correction on a real car
+    (docs/model.md, "Further passes")."""
 
-    iterations: int = 1
+    iterations: int = 3
     min_points: int = 1
     max_shift: float = 1.5
     max_turn: float = 0.35
-    repeat_shift: float = 0.4
-    repeat_min_points: int = 30
+    repeat_shift: float = 0.0
+    repeat_min_points: int = 1
+    repeat_min_length: float = 6.0
 
     def __post_init__(self):
         if self.iterations < 0:
@@ -296,7 +298,8 @@ class PlacementRefiner:
             poses[ok, 3] = yaw + turn
             moved = np.hypot(shift[:, 0], shift[:, 1])
             ok = [i for i, m in zip(ok, moved, strict=True)
-                  if m >= cfg.repeat_shift and len(points[i]) >= cfg.repeat_min_points]
+                  if m >= cfg.repeat_shift and len(points[i]) >= cfg.repeat_min_points
+                  and extents[i][0] >= cfg.repeat_min_length]
         return poses
 
     def corrections_of(self, frames: Sequence[np.ndarray], complete: np.ndarray,
