@@ -26,7 +26,11 @@ from _bench import print_table
 from seqshape.data.dataset import TrackDataset
 from seqshape.model.estimator import Estimator
 from seqshape.model.placement import RefinerConfig, load_refiner, targets
+from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 from seqshape.train.refiner import collect_frames, frame_points
+
+#: The RefinerConfig fields of further passes that the options set (default: the shipped ones).
+PASS_FIELDS = ("iterations", "repeat_shift", "repeat_min_points", "repeat_min_length")
 
 
 def _row(frames: dict, poses: np.ndarray, mask: np.ndarray) -> list[str]:
@@ -48,29 +52,20 @@ def main() -> None:
     ap.add_argument("--baseline", default="baseline")
     ap.add_argument("--refiners", nargs="+", default=["pretrained"],
                     help="'pretrained' and/or refiner files")
-    ap.add_argument("--iterations", nargs="+", type=int, default=None,
-                    help="most passes of each refiner (RefinerConfig.iterations; default: "
-                         "the shipped setting)")
-    ap.add_argument("--repeat-shift", type=float, default=None,
-                    help="a further pass only where the last moved the centre this far (m; "
-                         "RefinerConfig.repeat_shift; default: the shipped setting)")
-    ap.add_argument("--repeat-min-points", type=int, default=None,
-                    help="... and the frame has this many points (default: the shipped setting)")
-    ap.add_argument("--repeat-min-length", type=float, default=None,
-                    help="... and the estimate is this long (m; default: the shipped setting)")
+    add_config_arguments(ap, RefinerConfig, list(PASS_FIELDS), iterations={"nargs": "+"})
     args = ap.parse_args()
     ds = TrackDataset(args.data)
     ds = ds if args.split == "all" else ds.split(args.split)
     shipped = RefinerConfig()
-    changes = {k: v for k, v in (("repeat_shift", args.repeat_shift),
-                                 ("repeat_min_points", args.repeat_min_points),
-                                 ("repeat_min_length", args.repeat_min_length)) if v is not None}
+    iterations = args.iterations if isinstance(args.iterations, list) else [args.iterations]
     refiners = {}
     for spec in args.refiners:
-        for it in args.iterations or [shipped.iterations]:
-            cfg = dataclasses.replace(shipped, iterations=it, **changes)
-            name = spec if cfg == shipped else f"{spec} x{it}" + "".join(
-                f" {k}={v}" for k, v in changes.items())
+        for it in iterations:
+            cfg = dataclasses.replace(shipped, **{**config_kwargs(args, PASS_FIELDS),
+                                                  "iterations": it})
+            name = spec if cfg == shipped else f"{spec} " + " ".join(
+                f"{k}={getattr(cfg, k)}" for k in PASS_FIELDS if getattr(cfg, k) != getattr(
+                    shipped, k))
             refiners[name] = load_refiner(spec, cfg)
     rows = []
     for kind, spec in (("sequential", args.checkpoint), ("baseline", args.baseline)):

@@ -166,16 +166,21 @@ def build_net(width: int = WIDTH):
 
 @dataclass(frozen=True)
 class RefinerConfig:
-    """How the refiner is applied: up to ``iterations`` passes (each re-reads the points in
-    the corrected frame), ``min_points`` below which a frame is left alone, ``max_shift`` (m)
-    and ``max_turn`` (rad) clip each pass's correction. A pass after the first runs only on
-    the frames whose estimate is at least ``repeat_min_length`` m long (the extents given),
-    whose previous pass moved the centre by at least ``repeat_shift`` (m, in the ground plane)
-    and that have at least ``repeat_min_points`` points. The default: up to three passes for
-    vehicles of 6 m and more (trucks, buses, trailers: their errors are large against the
-    per-pass clip and the training disturbances), one for cars, on which further passes
-    helped nothing on synthetic data and compounded a wrong first correction on a real car
-    (docs/model.md, "Further passes")."""
+    """How the refiner is applied. The default: up to three passes for estimates of 6 m and
+    more (trucks, buses, trailers: their errors are large against the per-pass clip and the
+    training disturbances), one for cars, on which further passes helped nothing on synthetic
+    data and compounded a wrong first correction on a real car (docs/model.md, "Further passes
+    for long vehicles").
+
+    iterations: most passes; each re-reads the points in the box frame the last one corrected.
+    min_points: a frame with fewer points is left alone.
+    max_shift: each pass's centre correction is clipped to this (m, per axis).
+    max_turn: each pass's heading correction is clipped to this (rad).
+    repeat_shift: a pass after the first only where the last one moved the centre at least
+        this far (m, in the ground plane).
+    repeat_min_points: ... and the frame has at least this many points.
+    repeat_min_length: ... and the estimate is at least this long (m, its extents).
+    """
 
     iterations: int = 3
     min_points: int = 1
