@@ -69,36 +69,21 @@ def resample_frame(points: np.ndarray, num_points: int,
 #: percentile extent; the largest is within cos(11.25 deg) = 2 % of the true diameter.
 _DIRECTIONS = np.stack([np.cos(np.arange(8) * np.pi / 8), np.sin(np.arange(8) * np.pi / 8)])
 LENGTH_PERCENTILES = (1.0, 99.0)
-
-
 _COS32, _SIN32 = (_DIRECTIONS[k].astype(np.float32) for k in range(2))
-
-
-def _project(points: np.ndarray) -> np.ndarray:
-    """``(n, 8)`` float32 bird's-eye projections of float32 ``points (n, 3)`` on the
-    :data:`_DIRECTIONS`, as two products and a sum per entry (no fused multiply-add, unlike a
-    matrix product whose kernel depends on the shape: the same numbers for a frame alone and
-    inside a batch)."""
-    return points[:, 0:1] * _COS32 + points[:, 1:2] * _SIN32
 
 
 def points_length(points: np.ndarray) -> float:
     """A vehicle length estimate from its points alone: the largest bird's-eye extent (1st
-    to 99th percentile, so a stray return does not count) over 8 directions; 0 for fewer than
-    two points. A partial view gives a lower bound: take the running maximum over a track.
-    Many frames at once: :func:`points_lengths`."""
-    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
-    if len(points) < 2:
-        return 0.0
-    proj = np.sort(_project(points), axis=0)  # (n, 8)
-    lo, hi = (_sorted_percentile(proj, q) for q in LENGTH_PERCENTILES)
-    return float((hi - lo).max())
+    to 99th percentile, linear interpolation, so a stray return does not count) over 8
+    directions; 0 for fewer than two points. A partial view gives a lower bound: take the
+    running maximum over a track. Many frames at once: :func:`points_lengths`."""
+    return float(points_lengths([points])[0])
 
 
 def points_lengths(frames: Sequence[np.ndarray]) -> np.ndarray:
-    """``(F,)`` float64 :func:`points_length` of each frame of finite points, equal to it
-    frame by frame, bit for bit (tested), with a few array operations for all frames (a
-    streaming step of many tracks)."""
+    """``(F,)`` float64 :func:`points_length` of each frame of finite points, with a few array
+    operations for all frames (a streaming step of many tracks); a frame's length does not
+    depend on the others in the batch (tested)."""
     frames = [np.asarray(f, dtype=np.float32).reshape(-1, 3) for f in frames]
     counts = np.array([len(f) for f in frames], dtype=np.int64)
     out = np.zeros(len(frames))
@@ -107,7 +92,8 @@ def points_lengths(frames: Sequence[np.ndarray]) -> np.ndarray:
         return out
     n = counts[ok]
     pts = np.concatenate([frames[i] for i in ok])
-    # (8, P): each entry the product-and-sum of _project, laid out for per-frame sorts
+    # (8, P) projections as two products and a sum per entry: no fused multiply-add whose use
+    # would depend on the shape of a matrix product; laid out for per-frame sorts
     proj = np.multiply.outer(_COS32, pts[:, 0])
     proj += np.multiply.outer(_SIN32, pts[:, 1])
     batch = np.full((len(ok), 8, int(n.max())), np.inf, dtype=np.float32)
@@ -117,25 +103,15 @@ def points_lengths(frames: Sequence[np.ndarray]) -> np.ndarray:
     batch.sort(axis=2)  # the padding (inf) after each frame's own values
     ext = []
     rows = np.arange(len(ok))
-    for q in LENGTH_PERCENTILES:  # _sorted_percentile's arithmetic, frame by frame
+    for q in LENGTH_PERCENTILES:  # linear interpolation between the two nearest ranks
         pos = q / 100.0 * (n - 1)
         i = pos.astype(np.int64)
         j = np.minimum(i + 1, n - 1)
-        frac = (pos - i).astype(np.float32)[:, None]  # a Python float there: float32 maths
+        frac = (pos - i).astype(np.float32)[:, None]
         a, b = batch[rows, :, i], batch[rows, :, j]  # (F', 8)
         ext.append(a + frac * (b - a))
     out[ok] = (ext[1] - ext[0]).max(axis=1)
     return out
-
-
-def _sorted_percentile(sorted_rows: np.ndarray, q: float) -> np.ndarray:
-    """``np.percentile(x, q, axis=0)`` (linear interpolation) of column-sorted rows, without
-    numpy's generic machinery (several times faster on a few hundred rows)."""
-    pos = q / 100.0 * (len(sorted_rows) - 1)
-    i = int(pos)
-    j = min(i + 1, len(sorted_rows) - 1)
-    frac = pos - i
-    return sorted_rows[i] + frac * (sorted_rows[j] - sorted_rows[i])
 
 
 def running_lengths(frame_lengths: np.ndarray, running: bool) -> np.ndarray:
