@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 
 import numpy as np
 from _bench import print_table
@@ -30,7 +31,7 @@ from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 from seqshape.train.refiner import collect_frames, frame_points
 
 #: The RefinerConfig fields of further passes that the options set (default: the shipped ones).
-PASS_FIELDS = ("iterations", "repeat_shift", "repeat_min_points", "repeat_min_length")
+PASS_FIELDS = ("iterations", "repeat_shift", "repeat_min_points", "repeat_min_length", "points")
 
 
 def _row(frames: dict, poses: np.ndarray, mask: np.ndarray) -> list[str]:
@@ -52,17 +53,19 @@ def main() -> None:
     ap.add_argument("--baseline", default="baseline")
     ap.add_argument("--refiners", nargs="+", default=["pretrained"],
                     help="'pretrained' and/or refiner files")
-    add_config_arguments(ap, RefinerConfig, list(PASS_FIELDS), iterations={"nargs": "+"})
+    add_config_arguments(ap, RefinerConfig, list(PASS_FIELDS), iterations={"nargs": "+"},
+                         points={"nargs": "+"})
     args = ap.parse_args()
     ds = TrackDataset(args.data)
     ds = ds if args.split == "all" else ds.split(args.split)
     shipped = RefinerConfig()
     iterations = args.iterations if isinstance(args.iterations, list) else [args.iterations]
+    counts = args.points if isinstance(args.points, list) else [args.points]
     refiners = {}
     for spec in args.refiners:
-        for it in iterations:
+        for it, n in itertools.product(iterations, counts):
             cfg = dataclasses.replace(shipped, **{**config_kwargs(args, PASS_FIELDS),
-                                                  "iterations": it})
+                                                  "iterations": it, "points": n})
             name = spec if cfg == shipped else f"{spec} " + " ".join(
                 f"{k}={getattr(cfg, k)}" for k in PASS_FIELDS if getattr(cfg, k) != getattr(
                     shipped, k))

@@ -12,7 +12,7 @@ from _model_data import box_track, write_checkpoint
 
 torch = pytest.importorskip("torch")
 
-from seqshape.errors import DataError  # noqa: E402
+from seqshape.errors import ConfigError, DataError  # noqa: E402
 from seqshape.geometry import sensor_to_canonical  # noqa: E402
 from seqshape.model import Estimator, ModelConfig, ShapePoseNet  # noqa: E402
 from seqshape.model import placement as P  # noqa: E402
@@ -318,3 +318,27 @@ def test_a_steps_tracks_carry_their_own_corrections():
     est.step(["a", "new"], [tr.points[0], np.zeros((0, 3))])
     carried = est.step(["a", "b"], [np.zeros((0, 3)), tr.points[1]])[0]
     assert np.linalg.norm(carried.pose[:2] - carried_plain.pose[:2]) == pytest.approx(0.5)
+
+
+def test_points_option_sets_the_input_size():
+    """``RefinerConfig.points``: a frame larger than it is read through a seeded subset of that
+    many points, the same one :func:`refine_inputs` draws; a smaller frame is unchanged, as the
+    max-pools see each real point whatever the padding."""
+    ref = _shift_refiner(random_head=True)
+    rng = np.random.default_rng(2)
+    frames = [rng.normal(size=(k, 3)) * [2, 1, 0.7] + [15, -3, -1] for k in (20, 300)]
+    poses = np.array([[15.0, -3.0, -1.0, 0.3], [15.0, -3.0, -1.0, -0.4]])
+    ext = np.array([[4.2, 1.8, 1.5], [4.6, 1.9, 1.5]])
+    wide = ref.corrections(frames, poses, ext, seeds=[0, 1])
+    ref.config = P.RefinerConfig(points=64)
+    narrow = ref.corrections(frames, poses, ext, seeds=[0, 1])
+    np.testing.assert_allclose(narrow[0], wide[0], rtol=1e-5, atol=1e-6)  # 20 points: as before
+    assert np.abs(narrow[1] - wide[1]).max() > 1e-4  # 300 points: another subset, another answer
+    for i in range(2):
+        xyz, _, cond, s = P.refine_inputs(frames[i], poses[i], ext[i], np.random.default_rng(i),
+                                          n=64)
+        out = ref.forward(xyz[None], cond[None])[0].astype(np.float64)
+        out[:3] *= s
+        np.testing.assert_allclose(narrow[i], out, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ConfigError, match="points"):
+        P.RefinerConfig(points=0)

@@ -180,6 +180,8 @@ class RefinerConfig:
         this far (m, in the ground plane).
     repeat_min_points: ... and the frame has at least this many points.
     repeat_min_length: ... and the estimate is at least this long (m, its extents).
+    points: points fed per frame (a seeded subset of a larger frame; a smaller one repeated),
+        the refiner's arithmetic; the shipped refiner was trained with 256.
     """
 
     iterations: int = 3
@@ -189,8 +191,11 @@ class RefinerConfig:
     repeat_shift: float = 0.0
     repeat_min_points: int = 1
     repeat_min_length: float = 6.0
+    points: int = NUM_POINTS
 
     def __post_init__(self):
+        if self.points < 1:
+            raise ConfigError(f"RefinerConfig.points must be >= 1, got {self.points}")
         if self.iterations < 0:
             raise ConfigError(f"RefinerConfig.iterations must be >= 0, got {self.iterations}")
         if not self.repeat_shift >= 0:
@@ -246,7 +251,8 @@ class PlacementRefiner:
 
         The network runs in numpy (:meth:`forward`: a few small matrix products, no framework
         overhead on a one-track step); ``reference``: in PyTorch, the module itself."""
-        xyz, cond, scales = refine_inputs_batch(points, poses, extents, seeds)
+        xyz, cond, scales = refine_inputs_batch(points, poses, extents, seeds,
+                                                n=self.config.points)
         if reference:
             torch = _torch()
             with torch.no_grad():
@@ -313,7 +319,7 @@ class PlacementRefiner:
         NaN rows for the frames left alone (fewer than ``min_points`` points, a non-finite
         pose). ``frames``: per frame the points the network got; ``complete`` (F, K, 3) and
         ``poses`` (F, 4) its estimates; ``seeds``: per frame, the seed of the points' subset
-        (when a frame has more than :data:`NUM_POINTS`)."""
+        (when a frame has more than ``config.points``)."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
         corr = np.full((len(poses), 4), np.nan)
         idx = [i for i, f in enumerate(frames) if len(f) >= max(self.config.min_points, 1)
