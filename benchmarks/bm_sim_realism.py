@@ -29,6 +29,11 @@ otherwise differs in every layout number). The histogram counts the frames befor
     python benchmarks/bm_sim_realism.py REAL_TRACKS SYNTHETIC_DATASET --max-view-deg 70
     python benchmarks/bm_sim_realism.py REAL A_SEED0 A_SEED1 B --labels real a a b  # a: pooled
 
+``--per-frame`` also lists the first folder's frames one by one (track, frame, points, range,
+view angle, and the face gap of each box face the sensor sees within 60 degrees: on an exact
+box a few cm; a gap of decimetres on a face seen head-on at close range is a box that does
+not hold its own points).
+
 ``--placements N`` also samples N trajectories of a 4.6 x 1.85 m car per placement of
 ``seqshape.sim.trajectories.sample_trajectory`` (seed 0, no raycasting) and prints the view
 histogram of their frames within ``--view-range`` m of the sensor (folders then optional).
@@ -77,7 +82,9 @@ def frame_layout(points: np.ndarray, pose: np.ndarray, size: np.ndarray) -> dict
             "beyond": float(np.mean(outside & (radial > 0))),
             "low": float(np.mean(z < 0.3)),
             "offset": float(q[:, :2].mean(0) @ view),
-            "gaps": gaps, "radial": radial, "z": z, "range": dist}
+            "gaps": gaps, "radial": radial, "z": z, "range": dist,
+            "face_gaps": [half[a] - np.quantile(q[:, a] * np.sign(view[a]), 0.98)
+                          if abs(view[a]) >= 0.5 else float("nan") for a in (0, 1)]}
 
 
 def _car_tracks(folders: list[Path], max_tracks: int):
@@ -145,6 +152,21 @@ def _view_names() -> list[str]:
     return names
 
 
+def frame_rows(folder: Path, min_points: int, max_points: int, max_tracks: int) -> list[list]:
+    """``--per-frame``: one row per car frame of ``folder`` within the points filter."""
+    rows = []
+    for tr in _car_tracks([folder], max_tracks):
+        for t, pts in enumerate(tr.points):
+            if not min_points <= len(pts) <= max_points:
+                continue
+            x, y, _, yaw = tr.poses[t]
+            f = frame_layout(pts, tr.poses[t], tr.size)
+            rows.append([tr.track_id[-12:], t, len(pts), f"{f['range']:.1f}",
+                         f"{view_angle(x, y, yaw):.0f}",
+                         *("-" if np.isnan(g) else f"{g:+.2f}" for g in f["face_gaps"])])
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folders", nargs="*", type=Path, help="track folders (real first)")
@@ -158,6 +180,8 @@ def main() -> None:
                     help="keep frames whose view angle (0 nose, 180 tail) is at least this")
     ap.add_argument("--max-view-deg", type=float, default=180.0,
                     help="keep frames whose view angle is at most this")
+    ap.add_argument("--per-frame", action="store_true",
+                    help="also list the first folder's frames one by one (face gaps)")
     ap.add_argument("--placements", type=int, default=0, metavar="N",
                     help="also print the view histogram of N sampled tracks per placement")
     ap.add_argument("--view-range", type=float, default=40.0,
@@ -198,6 +222,13 @@ def main() -> None:
                   f"{r['gap']:.2f}", f"{100 * r['beyond']:.1f}",
                   f"{100 * r['beyond_any']:.0f} %"] if r["frames"] else [lab, 0, *["-"] * 9]
                  for lab, r in res.items()])
+    if args.per_frame:
+        print(f"\n{labels[0]}: car frames with {args.min_points}-{args.max_points} points, "
+              "face gap (m) of the faces seen within 60 degrees\n")
+        print_table(["track", "frame", "points", "range m", "view deg", "length face gap",
+                     "width face gap"],
+                    frame_rows(args.folders[0], args.min_points, args.max_points,
+                               args.max_tracks))
     bands = [f"{lo:+.2f}..{hi:+.2f}" for lo, hi in zip(R_BANDS[:-1], R_BANDS[1:], strict=True)]
     for lab, r in res.items():
         if not r["frames"]:
