@@ -242,3 +242,27 @@ def test_init_switches_on_the_input_scale(dataset, source, tmp_path):
     bad = dataclasses.replace(cfg, model_overrides={**cfg.model_overrides, "hidden": 32})
     with pytest.raises(ConfigError, match="hidden"):
         Trainer(dataset.path, tmp_path / "bad", "sequential", bad, init=source / "model.pt")
+
+
+def test_init_changes_the_points_per_frame(dataset, source, tmp_path):
+    """--init weights into a run that cuts frames to fewer points (``num_points``, no
+    parameters): accepted, the weights as they were, and a frame within both counts gives
+    exactly the old estimate while a larger one is cut to the new count (``Estimate.num_points``
+    is the number fed)."""
+    old_n = torch.load(source / "model.pt", weights_only=True)["model_config"]["num_points"]
+    cfg = dataclasses.replace(SMOKE.with_stage_steps((0, 0, 0)),
+                              model_overrides={**SMOKE.model_overrides,
+                                               "num_points": old_n // 2})
+    tr = Trainer(dataset.path, tmp_path / "run", "sequential", cfg, init=source / "model.pt")
+    _assert_same(tr.model.state_dict(), _weights(source / "model.pt"))
+    out = tr.run()
+    assert torch.load(out, weights_only=True)["model_config"]["num_points"] == old_n // 2
+    old, new = Estimator.from_checkpoint(source / "model.pt"), Estimator.from_checkpoint(out)
+    rng = np.random.default_rng(1)
+    small = [rng.uniform(-0.5, 0.5, (old_n // 4, 3)) * [4.5, 1.8, 1.5] + [8, 2, 0]]
+    a, b = old.step(["t"], small)[0], new.step(["t"], small)[0]
+    assert np.array_equal(a.complete, b.complete) and np.array_equal(a.pose, b.pose)
+    big = [rng.uniform(-0.5, 0.5, (old_n, 3)) * [4.5, 1.8, 1.5] + [8, 2, 0]]
+    a, b = old.step(["u"], big)[0], new.step(["u"], big)[0]
+    assert (a.num_points, b.num_points) == (old_n, old_n // 2)  # the points fed
+    assert not np.array_equal(a.complete, b.complete)

@@ -20,8 +20,9 @@ SCALE_NORMS = ("none", "length")
 #: the last detection (1), point count (1), viewing direction (2).
 MOTION_SIZE = 7
 #: Frozen-weights-compatible fields: they add no parameters, so ``--init`` accepts weights
-#: whose configuration differs from the run's only in these (see ``load_init``).
-PARAMETER_FREE_FIELDS = ("scale_norm", "scale_ref", "scale_max")
+#: whose configuration differs from the run's only in these (see ``load_init``): the input
+#: scale, and the points a frame is cut to (the encoder is per point, then max-pooled).
+PARAMETER_FREE_FIELDS = ("scale_norm", "scale_ref", "scale_max", "num_points")
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,8 @@ uninterrupted one would.
 ``seqshape/pretrained/<kind>.pt``; resolved by :func:`seqshape.model.estimator.resolve_weights`),
 checking that kind and model configuration match the run
 (except the parameter-free fields :data:`~seqshape.model.config.PARAMETER_FREE_FIELDS`: the
-input scale can be switched on when fine-tuning from weights trained without it; and the
+input scale can be switched on when fine-tuning from weights trained without it, and the
+points a frame is cut to changed (``--model-set num_points=128``); and the
 zero-initialised extensions ``frame_skip`` and ``motion_input`` can be switched on: the new
 parameters start at zero, so the run starts from exactly the source's function).
 """
@@ -114,8 +115,9 @@ def load_init(spec: str | Path, kind: str, model_cfg: ModelConfig
     except (ConfigError, TypeError, ValueError) as exc:
         raise DataError(path, f"invalid model_config ({exc})") from None
     run_cfg = model_cfg.to_dict()
-    # parameter-free options (the input scale) may differ: the weights fit either way, and
-    # with s = 1 (every car) the network computes exactly what it did
+    # parameter-free options (the input scale, the points per frame) may differ: the weights
+    # fit either way; with s = 1 (every car), or a frame within both point counts, the network
+    # computes exactly what it did
     diff = [k for k in run_cfg
             if src_cfg.get(k) != run_cfg[k] and k not in PARAMETER_FREE_FIELDS]
     state_dict = payload["state_dict"]
