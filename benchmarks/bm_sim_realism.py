@@ -72,19 +72,16 @@ def frame_layout(points: np.ndarray, pose: np.ndarray, size: np.ndarray) -> dict
     reach = abs(view[0]) * half[0] + abs(view[1]) * half[1]
     radial = -(q[:, :2] @ view) / reach
     z = (q[:, 2] + size[2] / 2) / size[2]
-    gaps = []
-    for a in (0, 1):
-        if abs(view[a]) >= 0.5:
-            proj = q[:, a] * np.sign(view[a])
-            gaps.append(half[a] - np.quantile(proj, 0.98))
+    # per box axis, the gap of the face seen within 60 degrees (NaN: that face is not)
+    face_gaps = [half[a] - np.quantile(q[:, a] * np.sign(view[a]), 0.98)
+                 if abs(view[a]) >= 0.5 else float("nan") for a in (0, 1)]
     outside = (np.abs(q[:, 0]) > half[0]) | (np.abs(q[:, 1]) > half[1])
     return {"far": float(np.mean(radial > 0)), "top": float(np.mean(z > 0.7)),
             "beyond": float(np.mean(outside & (radial > 0))),
             "low": float(np.mean(z < 0.3)),
             "offset": float(q[:, :2].mean(0) @ view),
-            "gaps": gaps, "radial": radial, "z": z, "range": dist,
-            "face_gaps": [half[a] - np.quantile(q[:, a] * np.sign(view[a]), 0.98)
-                          if abs(view[a]) >= 0.5 else float("nan") for a in (0, 1)]}
+            "gaps": [g for g in face_gaps if not np.isnan(g)], "face_gaps": face_gaps,
+            "radial": radial, "z": z, "range": dist}
 
 
 def _car_tracks(folders: list[Path], max_tracks: int):
