@@ -6,7 +6,8 @@
 * latency: one track, one ``step`` per frame, median milliseconds (target <= 1 ms).
 
 The weights are the shipped ``sequential`` and ``baseline`` ones by default (``--weights``
-also takes weights files, and ``untrained`` for a random ``small`` model). Every backend of
+also takes weights files, ``untrained`` for a random ``small`` model, and ``NAME@N`` for
+weights fed at most N points a frame, ``Estimator(max_points=N)``). Every backend of
 ``--backends`` runs on the same frames, and the repeats go round the backends in turn, so the
 ratios to the PyTorch reference are measured side by side even on a busy machine. ``--busy
 K`` starts K busy-looping processes for the duration (CPU contention, as on a labelling farm
@@ -86,12 +87,18 @@ def stop_busy(procs: list[multiprocessing.Process]) -> None:
 
 def load(spec: str, backend: str, threads: int | None, seed: int,
          refiner: str = "none") -> Estimator:
+    """The estimator of ``spec``; ``NAME@N`` feeds at most N points a frame
+    (``Estimator(max_points=N)``)."""
+    name, _, cut = spec.rpartition("@")
+    extra = {"max_points": int(cut)} if name and cut.isdigit() else {}
+    spec = name if extra else spec
     if spec == "untrained":
         torch.manual_seed(seed)
-        return Estimator(ShapePoseNet(MODEL_PRESETS["small"]), threads=threads, backend=backend)
-    if refiner == "none":  # (an older tree's loader may not take the option)
-        return Estimator.load(spec, threads=threads, backend=backend)
-    return Estimator.load(spec, threads=threads, backend=backend, refiner=refiner)
+        return Estimator(ShapePoseNet(MODEL_PRESETS["small"]), threads=threads, backend=backend,
+                         **extra)
+    if refiner != "none":  # (an older tree's loader may not take these options)
+        extra["refiner"] = refiner
+    return Estimator.load(spec, threads=threads, backend=backend, **extra)
 
 
 def throughput_run(est: Estimator, frames) -> float:
@@ -228,7 +235,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--busy", type=int, default=0, help="busy-looping processes to run beside")
     ap.add_argument("--weights", nargs="+", default=["sequential", "baseline"],
-                    help="shipped names, weights files, or 'untrained' (random small model)")
+                    help="shipped names, weights files, or 'untrained' (random small model); "
+                         "NAME@N: at most N points a frame fed (Estimator max_points)")
     ap.add_argument("--backends", nargs="+", default=["torch", "onnx", "torch-lean", "onnx-int8"],
                     choices=BACKENDS, help="the first is the reference of the ratio columns")
     ap.add_argument("--compare-with", metavar="OLD_SRC", default=None,

@@ -20,10 +20,10 @@ from seqshape.scripts.scenes import degrade_config
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 
 # options added since that release (issue 17: inference backends, labelling workers;
-# label --resume)
+# label --resume; evaluate --max-points)
 ADDED = {"label": {"backend": "auto", "workers": 1, "resume": False,
                    "placement": "pretrained"},
-         "evaluate": {"backend": "auto", "refiner": "pretrained"}}
+         "evaluate": {"backend": "auto", "refiner": "pretrained", "max_points": None}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
 # (33229e9), plus ADDED; paths as strings

@@ -542,3 +542,35 @@ def test_valid_outputs_are_the_network_step_by_step_bit_for_bit(recurrent):
             assert out.valid
             np.testing.assert_array_equal(out.complete, ref["complete"][0, 0].numpy())
             np.testing.assert_array_equal(out.pose, ref["pose"][0, 0].double().numpy())
+
+
+@pytest.mark.parametrize("recurrent", [True, False])
+def test_max_points_equals_a_model_trained_for_that_many(recurrent, tmp_path):
+    """``max_points=N`` cuts every frame to at most N points: step by step the very estimates
+    of the same weights saved with ``num_points=N`` (the option is only the input cut), and
+    the whole-track path cuts alike."""
+    import dataclasses
+
+    from seqshape.model.offline import estimate_track
+
+    model = _model(recurrent)
+    cut = ShapePoseNet(dataclasses.replace(TINY, num_points=16), recurrent=recurrent)
+    cut.load_state_dict(model.state_dict())
+    frames = _frames(np.random.default_rng(3), 3, 4)
+    ids = ["a", "b", "c"]
+    opt, ref = Estimator(model, max_points=16), Estimator(cut)
+    assert (opt.max_points, Estimator(_model(recurrent)).max_points) == (16, TINY.num_points)
+    for pts in frames:
+        for a, b, p in zip(opt.step(ids, pts), ref.step(ids, pts), pts, strict=True):
+            assert a.num_points == b.num_points == min(len(p), 16)
+            assert np.array_equal(a.complete, b.complete) and np.array_equal(a.pose, b.pose)
+    track = [f[0] for f in frames]
+    whole = estimate_track(Estimator(_model(recurrent), max_points=16), track, mode="online",
+                           track_id="a")
+    again = Estimator(_model(recurrent), max_points=16)
+    for t, p in enumerate(track):
+        (e,) = again.step(["a"], [p])
+        np.testing.assert_allclose(whole[t].pose, e.pose, atol=1e-5)
+    for bad in (0, -3, 2.5):
+        with pytest.raises(ConfigError, match="max_points"):
+            Estimator(_model(recurrent), max_points=bad)

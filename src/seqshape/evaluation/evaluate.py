@@ -64,6 +64,9 @@ class EvaluateConfig:
     refiner: placement refiner of both networks (seqshape.model.placement): 'pretrained' (the
         shipped one, trained on the shipped networks' estimates), a refiner file, or 'none' (the
         networks' own placement).
+    max_points: the most points of a frame fed to each network (a seeded subset of a larger
+        frame; None: the model's own num_points). Fewer is faster and less accurate
+        (docs/model.md, "Fewer points per frame").
     """
 
     split: str = "auto"
@@ -81,18 +84,22 @@ class EvaluateConfig:
     hints: bool = True
     backend: str = "auto"
     refiner: str = "pretrained"
+    max_points: int | None = None
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
             raise ConfigError(f"--backend {self.backend!r}: choose from {', '.join(BACKENDS)}")
         if self.max_tracks is not None and self.max_tracks < 1:
             raise ConfigError("--max-tracks must be >= 1")
+        if self.max_points is not None and self.max_points < 1:
+            raise ConfigError("--max-points must be >= 1")
 
 
-def load_estimator(spec: str, kind: str, backend: str = "auto"):
+def load_estimator(spec: str, kind: str, backend: str = "auto", max_points: int | None = None):
     """:meth:`Estimator.load` of ``spec`` ('pretrained': the shipped weights of ``kind``),
     checked to be of ``kind``; the error names the flag that takes the other kind."""
-    est = Estimator.load(kind if spec == "pretrained" else spec, backend=backend)
+    est = Estimator.load(kind if spec == "pretrained" else spec, backend=backend,
+                         max_points=max_points)
     if est.kind != kind:
         other = "baseline" if kind == "sequential" else "sequential"
         flag = "--baseline" if kind == "sequential" else "--checkpoint"
@@ -167,8 +174,9 @@ def mode_note(path: Path, modes: dict) -> None:
 def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfig) -> dict:
     """The methods to score: the sequential model (offline when asked), the baseline, and the
     box fit when ``cfg.boxfit`` (None: for real datasets)."""
-    estimators = {"sequential": load_estimator(checkpoint, "sequential", cfg.backend),
-                  "baseline": load_estimator(baseline, "baseline", cfg.backend)}
+    estimators = {"sequential": load_estimator(checkpoint, "sequential", cfg.backend,
+                                               cfg.max_points),
+                  "baseline": load_estimator(baseline, "baseline", cfg.backend, cfg.max_points)}
     refiner = load_refiner(cfg.refiner)
     for est in estimators.values():
         est.refiner = refiner

@@ -374,7 +374,7 @@ def _frames(estimator, points: Sequence[np.ndarray], track_id: str
     """The frames as the network gets them: finite rows, at most N (random subsets drawn
     with the estimator's per-track generator, in frame order, as :meth:`Estimator.step`),
     and the finite points per frame before that subset (T,)."""
-    n_max = estimator.model.cfg.num_points
+    n_max = estimator.max_points
     rng = np.random.default_rng([estimator.seed, zlib.crc32(str(track_id).encode("utf-8"))])
     out, raw = [], []
     for i, pts in enumerate(points):
