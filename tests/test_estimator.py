@@ -571,6 +571,6 @@ def test_max_points_equals_a_model_trained_for_that_many(recurrent, tmp_path):
     for t, p in enumerate(track):
         (e,) = again.step(["a"], [p])
         np.testing.assert_allclose(whole[t].pose, e.pose, atol=1e-5)
-    for bad in (0, -3, 2.5):
+    for bad in (0, -3, 2.5, True):
         with pytest.raises(ConfigError, match="max_points"):
             Estimator(_model(recurrent), max_points=bad)

@@ -245,8 +245,8 @@ class Estimator:
                  refiner: Any = None, max_points: int | None = None):
         self.model = model.eval()
         self.refiner = refiner
-        if max_points is not None and not (isinstance(max_points, int | np.integer)
-                                           and max_points >= 1):
+        if max_points is not None and (isinstance(max_points, bool) or not (
+                isinstance(max_points, int | np.integer) and max_points >= 1)):
             raise ConfigError(f"max_points must be a whole number >= 1 or None, got "
                               f"{max_points!r}")
         self.max_points = int(model.cfg.num_points if max_points is None else max_points)
