@@ -20,9 +20,9 @@ from seqshape.scripts.scenes import degrade_config
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 
 # options added since that release (issue 17: inference backends, labelling workers;
-# label --resume; evaluate --max-points)
+# label --resume; evaluate and label --max-points)
 ADDED = {"label": {"backend": "auto", "workers": 1, "resume": False,
-                   "placement": "pretrained"},
+                   "placement": "pretrained", "max_points": None},
          "evaluate": {"backend": "auto", "refiner": "pretrained", "max_points": None}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses

@@ -281,6 +281,10 @@ def test_settings_of_the_estimator(root, tmp_path):
     assert settings_differences(base, settings(backend="onnx-int8")) == [
         "inference: 'float32' there vs 'int8' now"]
     assert settings_differences(base, settings(trim=2.0)) == ["trim: 1.0 there vs 2.0 now"]
+    assert settings_differences(base, settings(max_points=128)) == [
+        "max_points: None there vs 128 now"]  # fewer points per frame: other estimates
+    with pytest.raises(ConfigError, match="max_points"):
+        LabelConfig(mode="sc-gt", max_points=0)
     other = label_settings(LabelConfig(mode="sc-gt"), log, "image_02", weights="sha256:0")
     assert settings_differences(base, other) == [f"weights: {digest!r} there vs 'sha256:0' now"]
     with pytest.raises(ConfigError, match="digest"):
@@ -313,6 +317,8 @@ def test_sc_gt_resume_with_the_shipped_weights(root, tmp_path, monkeypatch, caps
     assert "inference: 'float32' there vs 'int8' now" in capsys.readouterr().err
     assert main([*cmd, "--checkpoint", "baseline", "--resume"]) == 1
     assert "weights: 'sha256:" in capsys.readouterr().err
+    assert main([*cmd, "--max-points", "128", "--resume"]) == 1
+    assert "max_points: None there vs 128 now" in capsys.readouterr().err
     assert labelled == [] and label_cli._ESTIMATOR == {} and _files(out) == before
 
 
@@ -335,3 +341,10 @@ def test_placement_refiner_counts_by_its_content(tmp_path):
     assert weights_digest("pretrained", "none") == net
     with pytest.raises(DataError, match="missing.pt"):
         weights_digest("pretrained", str(tmp_path / "missing.pt"))
+
+
+def test_max_points_reaches_the_estimator(monkeypatch):
+    """``label --max-points N``: the process's estimator cuts frames to N points."""
+    monkeypatch.setattr(label_cli, "_ESTIMATOR", {})
+    est = label_cli._estimator("sc-gt", "pretrained", "torch", "none", 96)
+    assert est.max_points == 96 and label_cli._estimator("sc-gt", None, "torch") is est

@@ -139,6 +139,9 @@ class LabelConfig:
     placement: sc-* modes: the estimator's placement refiner
         (:mod:`seqshape.model.placement`): 'pretrained' (the shipped one), a refiner file, or
         'none'. It moves sc-seg's shapes (sc-gt places them at the ground-truth boxes).
+    max_points: sc-* modes: the most points of a frame fed to the estimator (None: its
+        model's num_points; fewer is faster and less accurate, docs/model.md "Fewer points
+        per frame").
     """
 
     mode: str = "sc-gt"
@@ -166,8 +169,11 @@ class LabelConfig:
     online: bool = False
     offline: OfflineConfig | None = None
     placement: str = "pretrained"
+    max_points: int | None = None
 
     def __post_init__(self):
+        if self.max_points is not None and self.max_points < 1:
+            raise ConfigError(f"max_points must be >= 1 or None, got {self.max_points!r}")
         if self.mode not in MODES:
             raise ConfigError(f"mode must be one of {MODES}, got {self.mode!r}")
         if self.refine not in REFINE_MODES:
@@ -198,14 +204,14 @@ class LabelResult:
 
 
 def load_estimator(checkpoint: str | None, backend: str = "auto",
-                   placement: str = "pretrained"):
+                   placement: str = "pretrained", max_points: int | None = None):
     """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped sequential
     one): :meth:`seqshape.model.estimator.Estimator.load`, with the placement refiner
-    ``placement`` (:func:`seqshape.model.placement.load_refiner`)."""
+    ``placement`` (:func:`seqshape.model.placement.load_refiner`) and ``max_points``."""
     from seqshape.model.estimator import Estimator  # lazy: torch (modes without a network)
 
     return Estimator.load("pretrained" if checkpoint is None else checkpoint, backend=backend,
-                          refiner=placement)
+                          refiner=placement, max_points=max_points)
 
 
 class TrackReplay:
@@ -488,8 +494,8 @@ def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict,
     if cfg.mode == "gt-accumulation":
         clouds = [gt_accumulation_clouds(t) for t in tracks]
     else:
-        est = estimator if estimator is not None else load_estimator(cfg.checkpoint, cfg.backend,
-                                                                     cfg.placement)
+        est = estimator if estimator is not None else load_estimator(
+            cfg.checkpoint, cfg.backend, cfg.placement, cfg.max_points)
         est.reset()
         if not cfg.online and _has_network(est):
             est = offline_replay(est, inputs, log, cfg.offline)

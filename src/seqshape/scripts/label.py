@@ -64,7 +64,8 @@ from seqshape.scripts._log_args import add_log_arguments, open_args_log
 
 HELP = "produce amodal mask labels (KINS JSON) for a driving log with cameras"
 FIELDS = ["mode", "checkpoint", "backend", "refine", "order", "alpha", "instances", "polygons", "fit_box",
-          "fit_box_below", "trim", "observed", "mask_fallback", "align", "online", "placement"]
+          "fit_box_below", "trim", "observed", "mask_fallback", "align", "online", "placement",
+          "max_points"]
 
 __all__ = ["HELP", "add_arguments", "cameras_of", "open_args_log", "run"]
 
@@ -136,12 +137,12 @@ _ESTIMATOR: dict = {}  # the estimator of this process (sc-* modes), loaded once
 
 
 def _estimator(mode: str, checkpoint: str | None, backend: str,
-               placement: str = "pretrained"):
+               placement: str = "pretrained", max_points: int | None = None):
     """This process's estimator (None for gt-accumulation), loaded at its first use."""
     if mode == "gt-accumulation":
         return None
     if "est" not in _ESTIMATOR:
-        _ESTIMATOR["est"] = load_estimator(checkpoint, backend, placement)
+        _ESTIMATOR["est"] = load_estimator(checkpoint, backend, placement, max_points)
     return _ESTIMATOR["est"]
 
 
@@ -292,7 +293,8 @@ def _start_one(opened: tuple, pool=None) -> tuple:
     args, name, log, cameras, cfg, tasks = opened
     prepared = {cam: task.get() for cam, task in tasks.items()}
     pending = start_labels(log, cfg, cameras, _estimator(args.mode, args.checkpoint,
-                                                         args.backend, args.placement),
+                                                         args.backend, args.placement,
+                                                         args.max_points),
                            pool=pool, keep_masks=args.overlays is not None, prepared=prepared)
     return args, name, log, cfg, pending
 
