@@ -234,7 +234,7 @@ class Estimator:
         max_points: the most points of a frame fed to the network (a larger frame is cut to a
             seeded random subset of this size); None: the model's ``num_points``, what it was
             trained with. The encoder's work grows with it: 128 for the shipped weights gives
-            about 1.5x the updates/s at 100 tracks, for a few per cent of accuracy on synthetic
+            about 1.7x the updates/s at 100 tracks, for a few per cent of accuracy on synthetic
             data and about 5 cm of median centre error on real cars (docs/model.md, "Fewer
             points per frame").
     """
