@@ -271,18 +271,43 @@ def test_nearest_neighbours_from_the_triangles_equal_the_kd_tree():
         radii = circumradii(verts)
         assert (A._auto_radius_fast(pts, ids, A._sides(verts), radii)
                 == auto_alpha_radius(pts, radii, distinct=True))
-    # Subdiv2D leaves out some hull slivers of sparse clouds (then the KD-tree answers; 7 %
-    # of the kitti-like vehicles): half of these clouds are certified
-    assert certified >= 4
-    # refused, so the KD-tree answers: no lattice, off the lattice, a missing triangle
+    # Subdiv2D leaves out some hull slivers of sparse clouds (then the points on the
+    # triangles' boundary ask the KD-tree): every cloud is answered but the collinear one
+    assert certified == len(clouds) - 1
+    # refused, so the KD-tree answers: no lattice, off the lattice
     pts = A._dedup(rng.normal(0, 5, (200, 2)), A.GRID_PX)
     verts = A.delaunay_triangles(pts)
     sides = A._sides(verts)
     assert A._vertex_ids(pts, verts, 0.0) is None
     assert A._vertex_ids(pts + 0.1, verts + 0.1, A.GRID_PX) is None
     assert A._nn_from_triangles(pts, None, sides) is None
+    # missing triangles (a hull sliver, inner ones, a point in no triangle left): the points
+    # around the holes ask the KD-tree, the others keep their triangles' answer, bit for bit
     ids = A._vertex_ids(pts, verts, A.GRID_PX)
-    assert A._nn_from_triangles(pts, ids[1:], A._sides(verts[1:])) is None
+    d, _ = cKDTree(pts).query(pts, k=2)
+    for drop in ([0], [5, 6, 40], list(range(0, len(verts), 3))):
+        keep = np.setdiff1d(np.arange(len(verts)), drop)
+        nn = A._nn_from_triangles(pts, ids[keep], A._sides(verts[keep]))
+        np.testing.assert_array_equal(nn, d[:, 1])
+
+
+def test_vertex_ids_of_wide_clouds_by_search_equal_the_table(monkeypatch):
+    """A cloud wider than the lookup table (a vehicle beside the camera) finds its vertices by
+    binary search: the same ids as the table, and the same mask as before."""
+    from seqshape.amodal import alpha as A
+
+    rng = np.random.default_rng(12)
+    for uv in _projected_vehicles(rng, 4) + [rng.uniform(-5000, 5000, (300, 2))]:
+        pts = A._dedup(uv, A.GRID_PX)
+        verts = A.delaunay_triangles(pts)
+        table = A._vertex_ids(pts, verts, A.GRID_PX)
+        size = (375, 1242)
+        mask = alpha_shape_mask(uv, size)
+        monkeypatch.setattr(A, "_LUT_MAX", 16)
+        np.testing.assert_array_equal(A._vertex_ids(pts, verts, A.GRID_PX), table)
+        assert A._vertex_ids(pts, verts + A.GRID_PX / 2, A.GRID_PX) is None  # not the points
+        np.testing.assert_array_equal(alpha_shape_mask(uv, size), mask)
+        monkeypatch.undo()
 
 
 def test_circumradii_bit_for_bit_as_with_norms():

@@ -28,8 +28,8 @@ Automatic alpha (``alpha=None``): radius
 percentile of the nearest-neighbour distances of the (deduplicated) points and ``r_med`` the
 median circumradius of the Delaunay triangles. The nearest-neighbour distances are read off
 the triangulation (a point's nearest neighbour is a Delaunay neighbour), bit for bit what a
-KD-tree returns; a KD-tree answers when the triangles cannot be certified to tile the points'
-convex hull (:func:`_nn_from_triangles`). For a roughly uniform sample the circumradii of
+KD-tree returns; where Subdiv2D left out hull slivers, the points on the triangles' boundary
+ask a KD-tree (:func:`_nn_from_triangles`). For a roughly uniform sample the circumradii of
 interior triangles are about the local spacing, so a few spacings keep every interior triangle
 while rejecting the long slivers that bridge concavities or gaps. The 90th percentile (rather
 than the median) tolerates the uneven density of projected surfaces (grazing surfaces project
@@ -168,8 +168,10 @@ def _lookup_buffer(size: int) -> np.ndarray:
 
 def _vertex_ids(pts: np.ndarray, vertices: np.ndarray, grid: float) -> np.ndarray | None:
     """``(T, 3)`` int32: the row of ``pts (N, 2)`` (distinct, on the ``grid`` lattice) at each
-    vertex of the triangles ``vertices (T, 3, 2)``, looked up by lattice cell; None when the
-    points are not on the lattice or span too many cells for the lookup table."""
+    vertex of the triangles ``vertices (T, 3, 2)``, looked up by lattice cell: in a table of
+    the cells when the points span at most :data:`_LUT_MAX` of them, else by binary search in
+    the sorted cell keys (a vehicle beside the camera projects thousands of pixels wide);
+    None when the points are not on the lattice (or a vertex is none of them)."""
     if grid <= 0 or len(pts) > 1 << 22:
         return None
     q = np.rint(pts / grid)
@@ -178,39 +180,67 @@ def _vertex_ids(pts: np.ndarray, vertices: np.ndarray, grid: float) -> np.ndarra
     q = q.astype(np.int64)
     lo = q.min(0)
     span = q.max(0) - lo + 1
-    if span[0] * span[1] > _LUT_MAX:
-        return None
-    lut = _lookup_buffer(int(span[0] * span[1]))
-    lut[(q[:, 0] - lo[0]) * span[1] + (q[:, 1] - lo[1])] = np.arange(len(q), dtype=np.int32)
     qv = np.rint(vertices.reshape(-1, 2) / grid).astype(np.int64) - lo  # (3T, 2)
-    return lut[qv[:, 0] * span[1] + qv[:, 1]].reshape(-1, 3)
+    keys = (q[:, 0] - lo[0]) * span[1] + (q[:, 1] - lo[1])  # distinct: one point per cell
+    wanted = qv[:, 0] * span[1] + qv[:, 1]
+    if span[0] * span[1] <= _LUT_MAX:
+        lut = _lookup_buffer(int(span[0] * span[1]))
+        lut[keys] = np.arange(len(q), dtype=np.int32)
+        return lut[wanted].reshape(-1, 3)
+    order = np.argsort(keys, kind="stable")
+    at = np.minimum(np.searchsorted(keys[order], wanted), len(keys) - 1)
+    if not np.array_equal(keys[order[at]], wanted):
+        return None
+    return order[at].astype(np.int32).reshape(-1, 3)
 
 
 def _nn_from_triangles(pts: np.ndarray, ids: np.ndarray | None, sides) -> np.ndarray | None:
     """Nearest-neighbour distance of each point ``pts (N, 2)`` (distinct, on a lattice) from
-    its Delaunay triangles (``ids``: :func:`_vertex_ids`, ``sides``: :func:`_sides`), or None
-    when this cannot be certified (then the caller asks a KD-tree).
+    its Delaunay triangles (``ids``: :func:`_vertex_ids`, ``sides``: :func:`_sides`), bit for
+    bit what a KD-tree gives; None without ``ids`` (then the caller asks a KD-tree).
 
     A point's nearest neighbour q is a Delaunay neighbour: the closed disk with diameter pq
     holds no other point (one on its circle would be nearer than q), so pq is an edge of every
-    Delaunay triangulation. The triangles are certified to triangulate the points' convex hull
-    (their areas sum to the hull's, exactly: lattice coordinates); then every point's nearest
-    neighbour is the shortest side of its triangles, and the distance is computed as a KD-tree
-    computes it (the same two squares, summed, square root).
+    Delaunay triangulation. When the triangles triangulate the points' convex hull (their
+    areas sum to the hull's, exactly: lattice coordinates), every point's nearest neighbour is
+    the shortest side of its triangles, and the distance is computed as a KD-tree computes it
+    (the same two squares, summed, square root). Subdiv2D leaves out a few hull slivers of some
+    clouds (the areas then differ): a point all of whose edges are shared by two of the
+    triangles still has its whole star of triangles, so its nearest neighbour is still among
+    their sides; only the points on the triangles' boundary (and any in no triangle) ask the
+    KD-tree.
     """
     if ids is None:
         return None
     a, b, c, area2 = sides
-    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
-    hull2 = abs(float(np.sum(hull[:, 0] * np.roll(hull[:, 1], -1)
-                             - hull[:, 1] * np.roll(hull[:, 0], -1))))
-    if float(area2.sum()) != hull2:
-        return None
     nn = np.full(len(pts), np.inf)
     for side, (i, j) in ((a, (1, 2)), (b, (0, 2)), (c, (0, 1))):
         np.minimum.at(nn, ids[:, i], side)
         np.minimum.at(nn, ids[:, j], side)
+    hull = cv2.convexHull(pts.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    hull2 = abs(float(np.sum(hull[:, 0] * np.roll(hull[:, 1], -1)
+                             - hull[:, 1] * np.roll(hull[:, 0], -1))))
+    if float(area2.sum()) != hull2:
+        ask = ~np.isfinite(nn)  # in no triangle
+        ask[_boundary_vertices(ids, len(pts))] = True
+        query = pts[ask]
+        if len(pts) < 2:
+            return None
+        d, _ = cKDTree(pts, balanced_tree=False).query(query, k=2)  # col 0: the point itself
+        nn[ask] = d[:, 1]
     return nn if np.isfinite(nn).all() else None
+
+
+def _boundary_vertices(ids: np.ndarray, n: int) -> np.ndarray:
+    """The vertices of the edges met by one triangle only of ``ids (T, 3)`` (points ``< n``)."""
+    i = ids.astype(np.int64)
+    a, b = i.ravel(), i[:, [1, 2, 0]].ravel()
+    key = np.sort(np.minimum(a, b) * n + np.maximum(a, b))
+    single = np.ones(len(key), dtype=bool)
+    single[1:] &= key[1:] != key[:-1]
+    single[:-1] &= key[:-1] != key[1:]
+    key = key[single]
+    return np.unique(np.concatenate([key // n, key % n]))
 
 
 def _auto_radius_fast(pts: np.ndarray, ids: np.ndarray | None, sides, radii: np.ndarray
