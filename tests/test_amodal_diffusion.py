@@ -149,14 +149,38 @@ def test_voxel_ids_equal_numpy_unique_rows():
         assert np.array_equal(_voxel_ids(keys), ref)
 
 
+def _components_reference(points, gap):
+    """The former components: voxel means by ``np.add.at``, voxel ids by ``np.unique`` of
+    the key rows, the graph through scipy's COO constructor."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) <= 1:
+        return np.zeros(len(points), dtype=np.int64)
+    keys = np.floor(points / (gap / 2)).astype(np.int64)
+    inv = np.unique(keys, axis=0, return_inverse=True)[1].ravel()
+    nv = int(inv.max()) + 1
+    reps = np.zeros((nv, 3))
+    np.add.at(reps, inv, points)
+    reps /= np.bincount(inv, minlength=nv)[:, None]
+    pairs = cKDTree(reps).query_pairs(gap, output_type="ndarray")
+    g = sp.csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(nv, nv))
+    return connected_components(g, directed=False)[1][inv]
+
+
 def _grow_reference(parts, outside, cluster_gap=0.5, cluster_gap_per_m=0.025, max_grow=5.0):
-    """The former grow_instances: every outside point queried against every instance."""
+    """The former grow_instances: every outside point queried against every instance, and
+    every distance compared."""
     from scipy.spatial import cKDTree
 
     from seqshape.amodal.diffusion import cluster_gap_for
 
     outside = np.asarray(outside, dtype=np.float64).reshape(-1, 3)
     parts = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in parts]
+    if len(outside) == 0 or not any(len(p) for p in parts):
+        return parts
     best, best_d = np.full(len(outside), -1), np.full(len(outside), np.inf)
     for m, p in enumerate(parts):
         if len(p) == 0:
@@ -165,8 +189,8 @@ def _grow_reference(parts, outside, cluster_gap=0.5, cluster_gap_per_m=0.025, ma
         cand = np.flatnonzero(np.isfinite(d))
         if len(cand) == 0:
             continue
-        comp = components(np.concatenate([p, outside[cand]]),
-                          cluster_gap_for(p, cluster_gap, cluster_gap_per_m))
+        comp = _components_reference(np.concatenate([p, outside[cand]]),
+                                     cluster_gap_for(p, cluster_gap, cluster_gap_per_m))
         sel = cand[np.isin(comp[len(p):], np.unique(comp[:len(p)]))]
         closer = d[sel] < best_d[sel]
         best[sel[closer]], best_d[sel[closer]] = m, d[sel][closer]
@@ -187,3 +211,167 @@ def test_grow_instances_equals_the_unfiltered_reference():
     assert len(fast[0]) > 250 and len(fast[1]) > 250  # the cut parts did come back
     assert np.array_equal(fast[4], lone)
 
+
+
+# ------------------------------------------------ grow_instances and components: bit for bit
+
+
+def _assert_grow_equal(parts, outside, **kw):
+    fast, ref = grow_instances(parts, outside, **kw), _grow_reference(parts, outside, **kw)
+    assert len(fast) == len(ref)
+    for f, r in zip(fast, ref, strict=True):
+        assert f.dtype == r.dtype == np.float64 and f.shape == r.shape
+        assert np.array_equal(f, r)
+    return fast
+
+
+def _scene(rng, n_clutter=6000):
+    """Vehicle-like blobs cut by the image border (part in ``parts``, the rest outside),
+    two of them touching, one duplicated as an overlapping instance, and clutter."""
+    cars = [blob(c, n, rng) for c, n in (([8, 6, 0], 1500), ([9, 9.5, 0], 900),
+                                         ([20, -4, 0.5], 400), ([40, -20, 0], 80))]
+    parts, rest = [], []
+    for car in cars:
+        seen = car[:, 0] > np.median(car[:, 0])
+        parts.append(car[seen])
+        rest.append(car[~seen])
+    parts.append(parts[0][::7].copy())  # a second mask on the first vehicle: ties and overlaps
+    clutter = rng.uniform([-10, -30, -1.5], [60, 30, 2.5], (n_clutter, 3))
+    return parts, np.vstack(rest + [clutter])
+
+
+def test_components_equal_the_reference():
+    rng = np.random.default_rng(11)
+    clouds = [rng.uniform(-5, 5, (3000, 3)), blob([10, -3, 0], 2000, rng),
+              np.round(rng.uniform(0, 3, (1500, 3)), 1),  # many points on voxel borders
+              np.vstack([blob([0, 0, 0], 500, rng)] * 2),  # duplicated points
+              rng.uniform(-1e4, 1e4, (300, 3)),  # a sparse span: the sorting route
+              np.zeros((1, 3)), np.zeros((0, 3)), np.array([[1.0, 2, 3], [1.1, 2, 3]])]
+    for pts in clouds:
+        for gap in (0.3, 0.5, 1.25, 4.0):
+            assert np.array_equal(components(pts, gap), _components_reference(pts, gap))
+
+
+def test_voxel_components_labels_follow_the_points():
+    from seqshape.amodal.diffusion import _voxel_components
+
+    rng = np.random.default_rng(12)
+    pts = rng.uniform(0, 8, (4000, 3))
+    comp, inv = _voxel_components(pts, 0.4)
+    assert np.array_equal(comp[inv], _components_reference(pts, 0.4))
+
+
+def test_surely_agrees_with_the_tree():
+    """Points settled by the grid bounds get the tree's answer, with points at exactly the
+    cut, just inside and just outside it, and on cube borders."""
+    from scipy.spatial import cKDTree
+
+    from seqshape.amodal.diffusion import _columns, _surely
+
+    rng = np.random.default_rng(13)
+    line = np.c_[np.zeros(41), np.arange(41) * 0.25, np.zeros(41)]  # 0..10 m along y
+    offsets = np.array([[5, 0, 0], [3, 0, 4], [0, 0, 5], [-4, 0, 3], [4.999999, 0, 0],
+                        [5.000001, 0, 0], [2.5, 0, 0], [7, 0, 0], [0, 0, -5]], float)
+    lattice = (line[:, None, :] + offsets[None]).reshape(-1, 3)
+    for p, q, max_grow in ((line, lattice, 5.0), (blob([5, 5, 0], 3000, rng),
+                                                  rng.uniform(-5, 15, (20000, 3)), 5.0),
+                           (blob([5, 5, 0], 800, rng),
+                            rng.uniform([0, 1, -3], [10, 9, 3], (5000, 3)), 2.5),
+                           (np.round(rng.uniform(0, 4, (500, 3)), 1),
+                            np.round(rng.uniform(-1.5, 5.5, (8000, 3)), 1), 2.0)):
+        d, _ = cKDTree(p).query(q, distance_upper_bound=max_grow)
+        for cells in (4, 16, 40):  # (40: too many cubes for the line; nothing settled)
+            within, beyond = _surely(_columns(p), _columns(q), max_grow, max_grow / cells)
+            assert not (within & beyond).any()
+            assert np.isfinite(d[within]).all() and np.isinf(d[beyond]).all()
+            if cells == 16 and p is not line:  # (the line's points are mostly at the cut)
+                assert (within | beyond).mean() > 0.5  # it does settle most of them
+
+
+
+def test_surely_bounds_are_tight_at_cube_corners():
+    """Where the grid bounds are tight (p and q at the corners of their cubes, on the
+    diagonal), a point a hair inside (outside) max_grow is not called beyond (within)."""
+    from scipy.spatial import cKDTree
+
+    from seqshape.amodal.diffusion import _columns, _surely
+
+    diag, eps, delta = np.ones(3), 1e-9, 1e-7
+    for cell, k in ((0.25, 12), (0.3125, 9), (0.5, 3)):
+        origin = np.zeros((1, 3))  # sets the grid's origin: cube 0 is [0, cell)^3
+        cases = (  # (p, q, max_grow): at the lower bound, then at the upper bound
+            ((cell - eps) * diag, k * cell * diag, (k - 1) * cell * np.sqrt(3) + delta),
+            (eps * diag, ((k + 1) * cell - eps) * diag, (k + 1) * cell * np.sqrt(3) - delta))
+        for p, q, max_grow in cases:
+            q = np.vstack([origin, q, q + 1e-4])
+            within, beyond = _surely(_columns(p[None]), _columns(q), max_grow, cell)
+            d, _ = cKDTree(p[None]).query(q, distance_upper_bound=max_grow)
+            assert np.isfinite(d[within]).all() and np.isinf(d[beyond]).all()
+
+
+def test_grow_instances_equal_the_reference_on_random_scenes():
+    for seed in range(4):
+        rng = np.random.default_rng(100 + seed)
+        parts, outside = _scene(rng)
+        for kw in ({}, {"max_grow": 2.0}, {"max_grow": 0.3}, {"max_grow": 12.0},
+                   {"cluster_gap": 1.0, "cluster_gap_per_m": 0.05}):
+            _assert_grow_equal(parts, outside, **kw)
+        _assert_grow_equal(parts[::-1], outside)  # the duplicate instance first
+        _assert_grow_equal(parts, outside, max_grow=np.inf)
+        _assert_grow_equal(parts, outside, max_grow=0.0)
+        _assert_grow_equal([p.astype(np.float32) for p in parts], outside.astype(np.float32))
+
+
+def test_grow_instances_cut_at_exactly_max_grow():
+    """Outside points at exactly max_grow from an instance (3-4-5 offsets: exact squared
+    distances) are not reached, points a hair closer are, on the grid route (many points in
+    reach) and the tree route (few); a large cluster gap links everything within reach."""
+    rng = np.random.default_rng(14)
+    line = np.c_[np.zeros(81), np.arange(81) * 0.125, np.zeros(81)]
+    offsets = np.array([[5, 0, 0], [3, 0, 4], [0, 0, 5], [-4, 0, 3], [-3, 0, -4],
+                        [4.999999999, 0, 0], [5.000000001, 0, 0], [0, 0, 4.99999999999],
+                        [2.5, 0, 0], [1, 0, 1], [6, 0, 0]], float)
+    exact = (line[:, None, :] + offsets[None]).reshape(-1, 3)
+    clutter = rng.uniform([-8, -3, -8], [8, 13, 8], (3000, 3))
+    for outside in (exact, np.vstack([exact, clutter]), exact[::40]):
+        for gap in (0.5, 20.0):
+            grown = _assert_grow_equal([line], outside, cluster_gap=gap)[0]
+            if gap == 20.0:
+                d = np.linalg.norm(grown[len(line):, None] - line[None], axis=2).min(1)
+                assert d.max() < 5.0 and len(grown) > len(line)
+        _assert_grow_equal([line[:40], line[40:]], outside, cluster_gap=20.0)
+
+
+def test_grow_instances_ties_go_to_the_first_instance():
+    """Outside points equally near to two instances (mirror images, or the same points twice)
+    go to the first of them, and a nearer later instance takes them."""
+    y, z = np.meshgrid(np.arange(30) * 0.2, np.arange(10) * 0.2)
+    plane = np.c_[np.zeros(y.size), y.ravel(), z.ravel()]
+    left, right = plane - [1.0, 0, 0], plane + [1.0, 0, 0]
+    middle = np.vstack([plane + [dx, 0, 0] for dx in (0.0, 0.5, -0.5, 0.25)])
+    for parts in ([left, right], [right, left], [left, left.copy()], [left, right, left.copy()],
+                  [np.zeros((0, 3)), right, left]):
+        grown = _assert_grow_equal(parts, middle, cluster_gap=3.0)
+        assert sum(len(g) for g in grown) == sum(len(p) for p in parts) + len(middle)
+    grown = grow_instances([left, left.copy()], middle, cluster_gap=3.0)
+    assert len(grown[1]) == len(left)  # every tie kept by the first
+    big = np.vstack([middle, np.random.default_rng(15).uniform(-4, 4, (3000, 3))])
+    for parts in ([left, right], [left, left.copy(), right]):  # the grid route
+        _assert_grow_equal(parts, big, cluster_gap=3.0)
+
+
+def test_grow_instances_edge_cases():
+    rng = np.random.default_rng(16)
+    pts = blob([5, 0, 0], 200, rng)
+    empty = np.zeros((0, 3))
+    for parts, outside in (([pts], empty), ([], pts), ([empty, empty], pts),
+                           ([empty, pts[:1]], pts[1:]), ([pts[:100]], pts[100:101]),
+                           ([pts[:100], empty], pts[100:]), ([pts[:50], pts[50:100]], pts[100:]),
+                           ([pts.astype(np.float32)[:100]], pts[100:].astype(np.float32)),
+                           ([pts[:100].ravel()], list(map(tuple, pts[100:])))):
+        _assert_grow_equal(parts, outside)
+    with_nan = pts[:100].copy()
+    with_nan[3] = np.nan  # no box to reach into: nothing grown (and no tree), as before
+    fast = grow_instances([with_nan, pts[100:150]], pts[150:])
+    assert np.array_equal(fast[0], with_nan, equal_nan=True)
+    assert np.array_equal(fast[1], _grow_reference([pts[100:150]], pts[150:])[0])

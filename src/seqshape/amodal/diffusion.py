@@ -43,6 +43,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import scipy.sparse as sp
+from scipy import ndimage
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
@@ -56,6 +57,10 @@ except ImportError:  # pragma: no cover - a SciPy without it: the public product
 log = logging.getLogger(__name__)
 
 BACKGROUND = -1
+
+_GRID_MIN_QUERIES = 1024  # grow_instances: fewer outside points in reach go to the tree
+_GRID_CELLS = 16  # ... else a grid of cubes of max_grow / 16 settles most of them
+_GRID_MAX_CELLS = 1 << 18  # ... unless it would be this large (and sparse)
 
 
 def ground_mask(points, threshold: float = 0.2, sensor_height: float = 1.73,
@@ -252,30 +257,54 @@ def components(points, gap: float) -> np.ndarray:
     neighbours all lie on its own scan line (dense along the line, sparse across lines).
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    n = len(points)
-    if n <= 1:
-        return np.zeros(n, dtype=np.int64)
+    if len(points) <= 1:
+        return np.zeros(len(points), dtype=np.int64)
+    comp, inv = _voxel_components(points, gap)
+    return comp[inv]
+
+
+def _voxel_components(points: np.ndarray, gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`components` of float64 ``points (N, 3)`` (N >= 1) per voxel: ``(comp (V,),
+    inv (N,))``, the component of each voxel and the voxel of each point (``comp[inv]``).
+
+    The voxel sums are ``np.bincount`` with weights, one column at a time: it adds each
+    voxel's points in the order of the points, from 0.0, as ``np.add.at(reps, inv, points)``
+    does, so the means are the same bit for bit (and several times faster)."""
     keys = np.floor(points / (gap / 2)).astype(np.int64)  # (N, 3)
     inv = _voxel_ids(keys)
     nv = int(inv.max()) + 1
-    reps = np.zeros((nv, 3))
-    np.add.at(reps, inv, points)
+    reps = np.empty((nv, 3))
+    for j in range(3):
+        reps[:, j] = np.bincount(inv, weights=points[:, j], minlength=nv)
     reps /= np.bincount(inv, minlength=nv)[:, None]
-    pairs = cKDTree(reps).query_pairs(gap, output_type="ndarray")
-    g = sp.csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(nv, nv))
+    pairs = cKDTree(reps).query_pairs(gap, output_type="ndarray")  # (P, 2)
+    # the graph as CSR, built directly (scipy's COO route costs more than the rest); the
+    # labels of connected_components depend only on the partition (numbered in the order
+    # of each component's first node), not on how the matrix was built
+    order = np.argsort(pairs[:, 0], kind="stable")
+    indptr = np.zeros(nv + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pairs[:, 0], minlength=nv), out=indptr[1:])
+    g = sp.csr_matrix((np.ones(len(pairs)), pairs[order, 1], indptr), shape=(nv, nv))
     _, comp = connected_components(g, directed=False)
-    return comp[inv]
+    return comp, inv
 
 
 def _voxel_ids(keys: np.ndarray) -> np.ndarray:
     """``(N,)`` index of each integer voxel ``keys (N, 3)`` among the distinct voxels in
     lexicographic order (``np.unique(keys, axis=0, return_inverse=True)``, on one int64 key
-    per voxel, which sorts the same way)."""
-    keys = keys - keys.min(0)
-    span = keys.max(0) + 1  # (3,)
+    per voxel, which sorts the same way). When the keys span few voxels the rank of each key
+    comes from a dense occupancy table (its running count) instead of a sort: the same ranks."""
+    cols = [keys[:, j] - keys[:, j].min() for j in range(3)]  # column-wise: (N, 3) reductions
+    span = [int(c.max()) + 1 for c in cols]                   # along axis 0 are slow
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0 ** 62:  # no room: the slow way
         return np.unique(keys, axis=0, return_inverse=True)[1].ravel()
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    flat = (cols[0] * span[1] + cols[1]) * span[2] + cols[2]
+    size = span[0] * span[1] * span[2]
+    if size <= 8 * len(flat) + 4096:
+        occupied = np.zeros(size, dtype=bool)
+        occupied[flat] = True
+        rank = np.cumsum(occupied, dtype=np.int64)
+        return rank[flat] - 1
     return np.unique(flat, return_inverse=True)[1].ravel()
 
 
@@ -363,43 +392,159 @@ def diffuse_labels(points, uv, masks: Sequence[np.ndarray], k: int = 10, sigma: 
     return labels
 
 
-def _in_reach(points: np.ndarray, xs: np.ndarray, lo: np.ndarray, hi: np.ndarray
-              ) -> np.ndarray:
-    """Indices (ascending) of the ``points (M, 3)`` inside the box ``[lo, hi]``; ``xs`` is
-    their x column (contiguous). Only these can lie within ``max_grow`` of an instance whose
-    points span ``[lo + max_grow, hi - max_grow]``."""
-    near = np.flatnonzero((xs >= lo[0]) & (xs <= hi[0]))
-    sub = points[near, 1:]  # (K, 2)
-    return near[np.all((sub >= lo[1:]) & (sub <= hi[1:]), axis=1)]
+def _columns(points: np.ndarray) -> list[np.ndarray]:
+    """The x, y, z columns of ``points (N, 3)``, contiguous (numpy's reductions along axis 0
+    of an ``(N, 3)`` array, and row tests with ``all(axis=1)``, are about ten times slower)."""
+    return [np.ascontiguousarray(points[:, j]) for j in range(3)]
+
+
+def _in_reach(cols: list[np.ndarray], lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Indices (ascending) of the points (columns ``cols``) inside the box ``[lo, hi]``.
+    Only these can lie within ``max_grow`` of an instance whose points span
+    ``[lo + max_grow, hi - max_grow]``."""
+    near = np.flatnonzero((cols[0] >= lo[0]) & (cols[0] <= hi[0]))
+    for j in (1, 2):
+        c = cols[j][near]
+        near = near[(c >= lo[j]) & (c <= hi[j])]
+    return near
+
+
+_SQRT3 = float(np.sqrt(3.0))
+
+
+def _surely(p_cols: list[np.ndarray], q_cols: list[np.ndarray], max_grow: float,
+            cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the points ``q`` (columns ``q_cols``, ``(K,)`` each) are surely within
+    ``max_grow`` of the points ``p`` (columns ``p_cols``), and which surely beyond: two
+    boolean ``(K,)``, from bounds on the distance from each ``q`` to its nearest ``p``.
+
+    Both sides go into a grid of cubes of side ``cell``; the Euclidean distance transform of
+    the cubes holding a ``p`` gives for each cube the distance ``D`` (in cubes) from its
+    centre to the nearest such cube's centre, and that cube. A point lies within ``r = cell *
+    sqrt(3) / 2`` of its cube's centre ``c``, so the distance from ``q`` to its nearest ``p``
+    is at least ``cell * D - |q - c| - r >= cell * (D - sqrt(3))`` and at most ``cell * (D +
+    sqrt(3))``, or the distance to any one ``p``, here one in that nearest cube. The cubes
+    are settled first with the coarse bounds (most points), the other points with the
+    finer ones. A point is surely within (beyond) when a bound is below (above) ``max_grow``
+    by more than ``margin``, far more than the rounding of these bounds and of the k-d
+    tree's squared distances: the tree's ``distance_upper_bound`` test (``d < max_grow``)
+    says the same of it. Neither set is filled when the grid would be large and sparse."""
+    k = len(q_cols[0])
+    o = [min(pc.min(), qc.min()) for pc, qc in zip(p_cols, q_cols, strict=True)]
+    kp = [((c - a) / cell).astype(np.int64) for c, a in zip(p_cols, o, strict=True)]  # >= 0:
+    kq = [((c - a) / cell).astype(np.int64) for c, a in zip(q_cols, o, strict=True)]  # floor
+    shape = tuple(max(int(a.max()), int(b.max())) + 1 for a, b in zip(kp, kq, strict=True))
+    if shape[0] * shape[1] * shape[2] > max(_GRID_MAX_CELLS, 8 * k):
+        return np.zeros(k, dtype=bool), np.zeros(k, dtype=bool)
+    fp = (kp[0] * shape[1] + kp[1]) * shape[2] + kp[2]
+    fq = (kq[0] * shape[1] + kq[1]) * shape[2] + kq[2]
+    free = np.ones(shape[0] * shape[1] * shape[2], dtype=bool)  # the cubes holding no p
+    free[fp] = False
+    dist, nearest = ndimage.distance_transform_edt(free.reshape(shape), return_indices=True)
+    dist = dist.ravel()
+    scale = max(max(abs(c).max() for c in p_cols), max(abs(c).max() for c in q_cols))
+    margin = 1e-9 * (1.0 + max_grow + scale)
+    state = np.zeros(dist.size, dtype=np.int8)  # per cube: 1 surely within, -1 beyond
+    state[cell * (dist + _SQRT3) < max_grow - margin] = 1
+    state[cell * (dist - _SQRT3) > max_grow + margin] = -1
+    state = state[fq]
+    within, beyond = state == 1, state == -1
+    rest = np.flatnonzero(state == 0)
+    if len(rest):
+        rep = np.empty(dist.size, dtype=np.int64)  # a point of p in each cube holding one
+        rep[fp] = np.arange(len(fp))
+        n = nearest.reshape(3, -1)[:, fq[rest]].astype(np.int64)
+        to = rep[(n[0] * shape[1] + n[1]) * shape[2] + n[2]]  # (R,) a p in the nearest cube
+        to_p = to_c = 0.0
+        for j in range(3):
+            q = q_cols[j][rest]
+            diff = q - p_cols[j][to]
+            to_p = to_p + diff * diff
+            diff = q - (o[j] + (kq[j][rest] + 0.5) * cell)
+            to_c = to_c + diff * diff
+        within[rest] = np.sqrt(to_p) < max_grow - margin
+        low = cell * dist[fq[rest]] - np.sqrt(to_c) - cell * (_SQRT3 / 2)
+        beyond[rest] = low > max_grow + margin
+    return within, beyond
 
 
 def grow_instances(parts: Sequence[np.ndarray], outside, cluster_gap: float = 0.5,
-                   cluster_gap_per_m: float = 0.025, max_grow: float = 5.0) -> list[np.ndarray]:
+                   cluster_gap_per_m: float = 0.025, max_grow: float = 5.0,
+                   ) -> list[np.ndarray]:
     """Each instance's points ``parts[m] (N_m, 3)`` plus the ``outside (M, 3)`` points
-    connected to them (module doc). Returns new arrays (the input order, float64)."""
+    connected to them (module doc). Returns new arrays (the input order, float64).
+
+    The rule, as first written: for each instance ``m`` in turn, its candidates are the
+    outside points whose distance ``d_m`` to it, by ``cKDTree(part).query(...,
+    distance_upper_bound=max_grow)``, is finite; those in a component (:func:`components`,
+    on the part and its candidates) that holds a point of the part are reached, and a reached
+    point goes to ``m`` when ``d_m`` is below the smallest distance of the instances before
+    (so the first of equally near instances keeps it). The same, with less work:
+
+    * a point outside the box of the part grown by ``max_grow`` is not queried (its
+      distance is infinite), and a point surely within or surely beyond ``max_grow``
+      (:func:`_surely`, from a coarse grid) is not queried either: only the points near
+      the cut need the tree's answer, whose exact test (``<``, squared) decides them;
+    * a point reached by one instance only goes to it whatever its distance, so the
+      distances are computed (by the same tree, so to the same bits) only for the points
+      reached by several instances, and compared in the instances' order.
+    """
     outside = np.asarray(outside, dtype=np.float64).reshape(-1, 3)
     parts = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in parts]
     if len(outside) == 0 or not any(len(p) for p in parts):
         return parts
-    best = np.full(len(outside), -1)
-    best_d = np.full(len(outside), np.inf)
-    xs = np.ascontiguousarray(outside[:, 0])  # (M,)
+    cols = _columns(outside)
+    trees: dict[int, cKDTree] = {}
+
+    def tree(m: int) -> cKDTree:
+        if m not in trees:
+            trees[m] = cKDTree(parts[m])
+        return trees[m]
+
+    grid = 0 < max_grow < np.inf  # a bound to cut at: the grid can settle points
+    reached = []  # (m, indices into outside)
+    times_reached = np.zeros(len(outside), dtype=np.int64)
     for m, p in enumerate(parts):
         if len(p) == 0:
             continue
-        near = _in_reach(outside, xs, p.min(0) - max_grow, p.max(0) + max_grow)
+        p_cols = _columns(p)
+        lo = np.array([c.min() for c in p_cols]) - max_grow
+        hi = np.array([c.max() for c in p_cols]) + max_grow
+        near = _in_reach(cols, lo, hi)
         if len(near) == 0:  # nothing outside the image within reach: no tree to build
             continue
-        d, _ = cKDTree(p).query(outside[near], distance_upper_bound=max_grow)  # (K,)
-        found = np.isfinite(d)
-        cand, d = near[found], d[found]
+        if grid and len(near) >= _GRID_MIN_QUERIES and np.isfinite(lo).all() \
+                and np.isfinite(hi).all():
+            q_cols = [c[near] for c in cols]
+            found, beyond = _surely(p_cols, q_cols, max_grow, max_grow / _GRID_CELLS)
+            ask = np.flatnonzero(~(found | beyond))
+            if len(ask):
+                d, _ = tree(m).query(outside[near[ask]], distance_upper_bound=max_grow)
+                found[ask] = np.isfinite(d)
+        else:
+            d, _ = tree(m).query(outside[near], distance_upper_bound=max_grow)  # (K,)
+            found = np.isfinite(d)
+        cand = near[found]
         if len(cand) == 0:
             continue
         gap = cluster_gap_for(p, cluster_gap, cluster_gap_per_m)
-        comp = components(np.concatenate([p, outside[cand]]), gap)
-        reached = np.isin(comp[len(p):], np.unique(comp[:len(p)]))
-        sel = cand[reached]
-        d_sel = d[reached]
-        closer = d_sel < best_d[sel]
-        best[sel[closer]], best_d[sel[closer]] = m, d_sel[closer]
-    return [np.concatenate([p, outside[best == m]]) for m, p in enumerate(parts)]
+        comp, inv = _voxel_components(np.concatenate([p, outside[cand]]), gap)
+        linked = np.zeros(int(comp.max()) + 1, dtype=bool)
+        linked[comp[inv[:len(p)]]] = True  # the components holding a point of the part
+        sel = cand[linked[comp[inv[len(p):]]]]
+        times_reached[sel] += 1
+        reached.append((m, sel))
+    best = np.full(len(outside), -1)
+    best_d = np.full(len(outside), np.inf)
+    for m, sel in reached:
+        shared = times_reached[sel] > 1
+        best[sel[~shared]] = m
+        sel = sel[shared]
+        if len(sel):
+            d, _ = tree(m).query(outside[sel], distance_upper_bound=max_grow)
+            closer = d < best_d[sel]
+            best[sel[closer]], best_d[sel[closer]] = m, d[closer]
+    order = np.argsort(best, kind="stable")  # the points of each instance, ascending
+    ends = np.cumsum(np.bincount(best + 1, minlength=len(parts) + 1))
+    return [np.concatenate([p, outside[order[ends[m]:ends[m + 1]]]])
+            for m, p in enumerate(parts)]
