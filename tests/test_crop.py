@@ -1,4 +1,5 @@
-"""The one crop function (seqshape.data.crop) on hand-made sweeps with known ground."""
+"""The one crop function (seqshape.data.crop) on hand-made sweeps with known ground, and the
+fast crop against the former implementation (kept below as the slow exact reference)."""
 
 import numpy as np
 import pytest
@@ -6,12 +7,15 @@ import pytest
 from seqshape.data.crop import (
     CropConfig,
     SweepIndex,
+    _FreshRng,
+    _yaw_matrix,
     crop_vehicle,
     crop_vehicles,
     local_ground,
 )
+from seqshape.data.ground import _triples
 from seqshape.errors import ConfigError
-from seqshape.geometry import canonical_to_sensor
+from seqshape.geometry import canonical_to_sensor, sensor_to_canonical, yaw_to_rotmat
 
 POSE = np.array([10.0, 3.0, -1.0, 0.4])  # box centre; bottom at z = -1.75 on flat ground
 SIZE = np.array([4.5, 1.8, 1.5])
@@ -165,3 +169,256 @@ def test_sweep_index_rows_hold_every_point_of_the_squares():
     assert set(np.flatnonzero(inside)) <= set(rows)
     wide = SweepIndex(np.array([[0.0, 0.0, 0.0], [1e5, 1e5, 0.0]]), max_cells=100)
     assert wide.cell == 1000.0 and list(wide.rows([[1e5, 1e5]], [1.0])) == [1]
+
+
+# --- The former implementation, kept as the slow exact reference --------------------------
+# crop_vehicle as it was before the crop got faster (one box, the whole sweep scanned and
+# transformed with sensor_to_canonical, boolean row selections, np.all over rows of three, a
+# new generator per box) with the RANSAC of seqshape.data.ground as it was then (np.cross,
+# the column sums of each block's mask, the broadcast differences in _fit_plane). The former
+# crop_vehicles gave crop_vehicle's crops (test above), so the new crop_vehicles and
+# crop_vehicle must give these, bit for bit.
+
+
+def _ref_inlier_counts(cand, n, offs, threshold, block=512):
+    nt = np.ascontiguousarray(n.T)
+    counts = np.zeros(len(offs), dtype=np.int64)
+    dist = np.empty((min(block, len(cand)), len(offs)))
+    inl = np.empty(dist.shape, dtype=bool)
+    for start in range(0, len(cand), block):
+        rows = cand[start:start + block]
+        d, m = dist[:len(rows)], inl[:len(rows)]
+        np.matmul(rows, nt, out=d)
+        d -= offs
+        np.abs(d, out=d)
+        np.less(d, threshold, out=m)
+        counts += np.add.reduce(m.view(np.uint8), axis=0, dtype=np.int64)
+    return counts
+
+
+def _ref_ransac_plane(cand, rng, iterations, threshold, max_tilt_deg):
+    if len(cand) < 3 or iterations < 1:
+        return None, 0
+    tri = cand[_triples(rng, len(cand), iterations)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = (norm >= 1e-9) & (np.abs(n[:, 2]) >= np.cos(np.radians(max_tilt_deg)) * norm)
+    if not ok.any():
+        return None, 0
+    n, tri = n[ok] / norm[ok, None] * np.sign(n[ok, 2])[:, None], tri[ok]
+    offs = np.einsum("ij,ij->i", n, tri[:, 0])
+    counts = _ref_inlier_counts(cand, n, offs, threshold)
+    i = int(np.argmax(counts))
+    if counts[i] <= 0:
+        return None, 0
+    return (n[i], float(-offs[i])), int(counts[i])
+
+
+def _ref_fit_plane(p):
+    c = p.mean(0)
+    n = np.linalg.svd(p - c, full_matrices=False)[2][-1]
+    n = n if n[2] >= 0 else -n
+    return n, float(-n @ c)
+
+
+def _ref_surroundings(points, pose, size, reach_extra):
+    reach = float(np.hypot(size[0] / 2, size[1] / 2)) + reach_extra
+    idx = np.flatnonzero((np.abs(points[:, 0] - pose[0]) <= reach)
+                         & (np.abs(points[:, 1] - pose[1]) <= reach))
+    near = points[idx].astype(np.float64)
+    return near, sensor_to_canonical(near, pose)
+
+
+def _ref_ground_from(near, local, size, cfg):
+    if len(near) < cfg.min_ground_points:
+        return None
+    bottom = -size[2] / 2
+    ax, ay = np.abs(local[:, 0]), np.abs(local[:, 1])
+    keep = ((ax <= size[0] / 2 + cfg.context) & (ay <= size[1] / 2 + cfg.context)
+            & ((ax > size[0] / 2) | (ay > size[1] / 2))
+            & (local[:, 2] >= bottom - cfg.band_below) & (local[:, 2] <= bottom + cfg.band_above))
+    cand = near[keep]
+    if len(cand) < cfg.min_ground_points:
+        return None
+    rng = np.random.default_rng(cfg.seed)
+    best, count = _ref_ransac_plane(cand, rng, cfg.iterations, 0.08, cfg.max_tilt_deg)
+    if best is None or count < cfg.min_ground_points:
+        return None
+    n, d = best
+    inl = cand[np.abs(cand @ n + d) < 0.08]
+    n2, d2 = _ref_fit_plane(inl)
+    if n2[2] >= np.cos(np.radians(cfg.max_tilt_deg)):
+        n, d = n2, d2
+    return n, float(d)
+
+
+def _ref_local_ground(points, pose, size, cfg):
+    pose, size = np.asarray(pose, dtype=np.float64), np.asarray(size, dtype=np.float64)
+    near, local = _ref_surroundings(np.asarray(points)[:, :3], pose, size, cfg.context)
+    return _ref_ground_from(near, local, size, cfg)
+
+
+def _ref_crop_vehicle(points, pose, size, cfg, sweep_plane=None):
+    pts = np.asarray(points)[:, :3]
+    pose, size = np.asarray(pose, dtype=np.float64), np.asarray(size, dtype=np.float64)
+    extra = max(cfg.margin, cfg.context) if cfg.ground == "plane" else cfg.margin
+    near, local = _ref_surroundings(pts, pose, size, extra)
+    half = size / 2 + [cfg.margin, cfg.margin, cfg.margin_z]
+    inbox = np.all(np.abs(local) <= half, axis=1)
+    cand = near[inbox]
+    if cfg.ground == "none" or len(cand) == 0:
+        return np.ascontiguousarray(cand, dtype=np.float32)
+    plane = _ref_ground_from(near, local, size, cfg) if cfg.ground == "plane" else None
+    if plane is None and cfg.ground == "plane":
+        plane = sweep_plane() if callable(sweep_plane) else sweep_plane
+    if plane is not None:
+        n, d = plane
+        above = cand @ np.asarray(n, dtype=np.float64) + d >= cfg.ground_threshold
+    else:
+        above = local[inbox, 2] >= -size[2] / 2 + cfg.box_ground
+    return np.ascontiguousarray(cand[above], dtype=np.float32)
+
+
+# --- The fast crop against the reference ----------------------------------------------------
+
+_SETTINGS = (CropConfig(), CropConfig(ground="box"), CropConfig(ground="none", margin=0.5),
+             CropConfig(context=0.0, min_ground_points=5), CropConfig(seed=3, iterations=17),
+             CropConfig(max_tilt_deg=2.0, band_above=0.6, min_ground_points=3))
+
+
+def _assert_same_crops(sweep, poses, sizes, cfg, plane=None):
+    """crop_vehicles, crop_vehicle and local_ground equal the reference, bit for bit."""
+    got = crop_vehicles(sweep, poses, sizes, cfg, sweep_plane=plane)
+    assert len(got) == len(poses)
+    for out, pose, size in zip(got, poses, sizes, strict=True):
+        want = _ref_crop_vehicle(sweep, pose, size, cfg, sweep_plane=plane)
+        for crop in (out, crop_vehicle(sweep, pose, size, cfg, sweep_plane=plane)):
+            assert crop.dtype == np.float32 and crop.shape == want.shape
+            assert crop.tobytes() == want.tobytes()  # the same points, order and bits
+        lg, rg = local_ground(sweep, pose, size, cfg), _ref_local_ground(sweep, pose, size, cfg)
+        assert (lg is None) == (rg is None)
+        if rg is not None:
+            assert lg[0].tobytes() == rg[0].tobytes() and lg[1] == rg[1]
+    return got
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_crops_equal_the_former_implementation_on_random_streets(seed):
+    sweep, poses, sizes = _street(seed)
+    if seed == 3:  # a road at 6 % and vehicles on it
+        sweep[:, 2] += np.float32(0.06) * sweep[:, 0]
+    for cfg in _SETTINGS:
+        for plane in (None, (np.array([0.0, 0.0, 1.0]), 1.75)):
+            got = _assert_same_crops(sweep, poses, sizes, cfg, plane)
+    assert sum(len(c) for c in got) > 1000
+
+
+def _scene(seed: int, ground: str = "flat", n_ground: int = 6000):
+    """A hand-made float32 sweep around a few boxes: ``ground`` flat, tilted (12 degrees,
+    more than the 10 a plane may tilt), none, or sparse (a few returns only)."""
+    rng = np.random.default_rng(seed)
+    poses = np.array([[10.0, 3.0, -1.0, 0.4], [14.0, 1.0, -1.05, -2.9], [4.0, -6.0, -0.25, 1.2]])
+    sizes = np.array([[4.5, 1.8, 1.5], [4.2, 1.7, 1.4], [9.0, 2.5, 3.0]])
+    parts = [canonical_to_sensor(rng.uniform(-0.5, 0.5, (400, 3)) * s, p)
+             for p, s in zip(poses, sizes, strict=True)]
+    xy = rng.uniform(-5, 25, (n_ground if ground != "sparse" else 12, 2))
+    slope = np.tan(np.radians(12.0)) if ground == "tilted" else 0.0
+    if ground != "none":
+        parts.append(np.c_[xy, -1.75 + slope * (xy[:, 0] - 10) + rng.normal(0, 0.01, len(xy))])
+    return np.vstack(parts).astype(np.float32), poses, sizes
+
+
+@pytest.mark.parametrize("ground", ["flat", "tilted", "none", "sparse"])
+def test_crops_equal_the_former_implementation_on_hand_made_grounds(ground):
+    sweep, poses, sizes = _scene(4, ground)
+    calls = []
+
+    def plane():
+        calls.append(1)
+        return np.array([0.0, 0.0, 1.0]), 1.75
+
+    _assert_same_crops(sweep, poses, sizes, CropConfig(), plane)
+    assert (len(calls) > 0) == (ground != "flat")  # the sweep plane only where the fit fails
+    for cfg in _SETTINGS[1:]:
+        _assert_same_crops(sweep, poses, sizes, cfg, plane)
+
+
+def test_crops_equal_the_former_implementation_on_few_points():
+    sweep, poses, sizes = _scene(5)
+    for n in (0, 1, 2, 3, 5, 29, 30, 31, 60):
+        few = sweep[np.random.default_rng(n).permutation(len(sweep))[:n]]
+        for cfg in _SETTINGS:
+            _assert_same_crops(few, poses, sizes, cfg, (np.array([0.0, 0.0, 1.0]), 1.75))
+    one = np.repeat(sweep[:1], 50, axis=0)  # 50 times the same point: degenerate triples only
+    for cfg in _SETTINGS:
+        _assert_same_crops(one, poses, sizes, cfg)
+
+
+def test_crops_equal_the_former_implementation_at_the_sweep_edges():
+    sweep, _, _ = _scene(6)
+    rng = np.random.default_rng(6)  # and clutter above the road everywhere
+    clutter = np.c_[rng.uniform(-5, 25, (3000, 2)), rng.uniform(-1.4, 0.5, 3000)]
+    sweep = np.vstack([sweep, clutter.astype(np.float32)])
+    lo, hi = sweep[:, :2].min(0), sweep[:, :2].max(0)
+    mid = (lo + hi) / 2
+    centres = [  # on the edges and corners, just beyond them, beyond in one axis only
+        [lo[0], mid[1]], [hi[0], mid[1]], [mid[0], lo[1]], [mid[0], hi[1]], [lo[0], lo[1]],
+        [hi[0], hi[1]], [lo[0] - 3.0, mid[1]], [mid[0], hi[1] + 3.0], [mid[0], lo[1] - 6.5],
+        [hi[0] + 6.5, mid[1]], [mid[0], hi[1] + 40.0], [hi[0] + 40.0, mid[1]],
+        [mid[0], lo[1] - 40.0]]
+    poses = np.array([[x, y, -1.0, yaw] for (x, y), yaw
+                      in zip(centres, np.linspace(-3, 3, len(centres)), strict=True)])
+    sizes = np.tile([4.5, 1.8, 1.5], (len(poses), 1))
+    for cfg in _SETTINGS:
+        got = _assert_same_crops(sweep, poses, sizes, cfg)
+        assert len(got[-1]) == len(got[-2]) == 0 and len(got[0]) > 0
+
+
+def test_crops_equal_the_former_implementation_with_non_finite_rows_and_other_dtypes():
+    sweep, poses, sizes = _scene(7)
+    bad = sweep.copy()
+    bad[::17, 0] = np.nan
+    bad[::19, 1] = np.inf
+    bad[::23, 2] = np.nan
+    bad[::29, 1] = -np.inf
+    bad[::31] = np.nan  # whole rows
+    for pts in (bad, bad.astype(np.float64), sweep.astype(np.float64),
+                np.round(sweep * 10).astype(np.int32), np.c_[sweep, sweep[:, :1]]):
+        for cfg in _SETTINGS[:4]:
+            _assert_same_crops(pts, poses, sizes, cfg)
+    nowhere = np.full((40, 3), np.nan, np.float32)
+    assert all(len(c) == 0 for c in _assert_same_crops(nowhere, poses, sizes, CropConfig()))
+
+
+def test_near_boxes_find_the_points_of_each_square_in_sweep_order():
+    rng = np.random.default_rng(8)
+    pts = rng.uniform(-60, 60, (20000, 3)).astype(np.float32)
+    pts[::101, 0] = np.nan
+    index = SweepIndex(pts, cell=3.0)
+    centres, reaches = rng.uniform(-70, 70, (30, 2)), rng.uniform(0.3, 9.0, 30)
+    centres[0] = [65.0, 0.0]  # beyond the sweep in x only
+    centres[1] = [0.0, -68.0]  # ... in y only
+    near = index.near(centres, reaches)
+    assert np.all(np.diff(near.rows) > 0)
+    for b, (c, r) in enumerate(zip(centres, reaches, strict=True)):
+        pose = np.array([c[0], c[1], 0.0, 0.0])
+        want = np.flatnonzero((np.abs(pts[:, 0] - pose[0]) <= r)
+                              & (np.abs(pts[:, 1] - pose[1]) <= r))
+        np.testing.assert_array_equal(near.rows[near.square(b, pose, float(r))], want)
+
+
+@pytest.mark.parametrize("yaw", [0.0, -0.0, 0.4, -2.9, np.pi, -np.pi, 1e-300, 123.456])
+def test_yaw_matrix_is_yaw_to_rotmat(yaw):
+    for y in (yaw, np.float64(yaw), np.float32(yaw)):
+        assert _yaw_matrix(y).tobytes() == yaw_to_rotmat(y).tobytes()
+        assert _yaw_matrix(y).flags.c_contiguous and _yaw_matrix(y).dtype == np.float64
+
+
+def test_fresh_rng_draws_as_a_new_default_rng():
+    fresh = _FreshRng(11)
+    for _ in range(3):
+        rng = fresh()
+        want = np.random.default_rng(11)
+        np.testing.assert_array_equal(rng.integers(0, 1000, 50), want.integers(0, 1000, 50))
+        assert rng.random() == want.random()
+        assert rng.bit_generator.state == want.bit_generator.state

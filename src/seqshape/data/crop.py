@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from seqshape.data.ground import _fit_plane, _ransac_plane
+from seqshape.data.ground import _fit_plane, _minus, _ransac_plane
 from seqshape.errors import ConfigError
 from seqshape.geometry import points_in_box, sensor_to_canonical
 
@@ -72,10 +72,30 @@ def _surroundings(points: np.ndarray, pose, size, reach_extra: float):
     """The points within the box's bounding circle grown by ``reach_extra`` (x, y), as float64
     in the sensor frame and in the box's own frame: ``(near (K, 3), local (K, 3))``."""
     reach = _reach(size, reach_extra)
-    idx = np.flatnonzero((np.abs(points[:, 0] - pose[0]) <= reach)
-                         & (np.abs(points[:, 1] - pose[1]) <= reach))
-    near = points[idx].astype(np.float64)
-    return near, sensor_to_canonical(near, pose)
+    idx = np.flatnonzero(_in_square(points[:, 0], points[:, 1], pose, reach))
+    near = np.take(points, idx, axis=0).astype(np.float64)
+    return near, _to_box(near, pose)
+
+
+def _in_square(x: np.ndarray, y: np.ndarray, pose: np.ndarray, reach: float) -> np.ndarray:
+    """Which points ``(x, y)`` lie in the square ``|x - cx| <= reach, |y - cy| <= reach``
+    around the box centre (the differences taken in float64, the centre's dtype)."""
+    return (np.abs(x - pose[0]) <= reach) & (np.abs(y - pose[1]) <= reach)
+
+
+def _to_box(near: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """``sensor_to_canonical(near, pose)`` of float64 points ``near (K, 3)``: the same product
+    ``(near - pose[:3]) @ R`` of the same operands (so the same bits), without its two copies
+    of ``near``, the differences taken column by column (:func:`~seqshape.data.ground._minus`)."""
+    return _minus(near, pose[:3]) @ _yaw_matrix(pose[3])
+
+
+def _yaw_matrix(yaw) -> np.ndarray:
+    """``yaw_to_rotmat(yaw)`` of one yaw, the same matrix (the same ``np.cos`` and ``np.sin``
+    of the same 0-d array, exact zeros and ones), without its four ``np.stack`` calls."""
+    yaw = np.asarray(yaw, dtype=np.float64)
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 class SweepIndex:
@@ -87,13 +107,20 @@ class SweepIndex:
     by ``slack`` metres against rounding), on which the exact test then runs. Points with a
     non-finite x or y are in no cell (the exact test never keeps them either). The cells are
     ``cell`` metres wide, wider when the sweep spans more than ``max_cells`` cells a side.
+    :meth:`near` sorts such a superset by cell once, so that each box then finds its own
+    cells' points without a pass over the whole superset (:class:`_NearBoxes`).
+
+    :attr:`x` and :attr:`y` are contiguous copies of the x and y columns in :attr:`dtype` (the
+    points' own float dtype, float64 for integers): the same values the exact test converts
+    to float64, read with one strided pass each instead of one per operation.
     """
 
     def __init__(self, points: np.ndarray, cell: float = 4.0, slack: float = 0.01,
                  max_cells: int = 2048):
         pts = np.asarray(points)
         self.dtype = pts.dtype if pts.dtype.kind == "f" else np.dtype(np.float64)
-        x, y = pts[:, 0].astype(self.dtype, copy=False), pts[:, 1].astype(self.dtype, copy=False)
+        self.x = x = np.ascontiguousarray(pts[:, 0], dtype=self.dtype)
+        self.y = y = np.ascontiguousarray(pts[:, 1], dtype=self.dtype)
         finite = None
         bounds = np.array([x.min(), y.min(), x.max(), y.max()]) if len(x) else np.zeros(4)
         if not np.isfinite(bounds).all():  # rare: bound and bucket the finite points only
@@ -119,18 +146,23 @@ class SweepIndex:
         return np.floor((xy.astype(self.dtype, copy=False) - self.lo) / self.cell).astype(
             np.int64)
 
+    def _ranges(self, centres, reaches) -> tuple[np.ndarray, np.ndarray]:
+        """The first and last grid cells ``(B, 2)``, ``(B, 2)`` (clipped to the grid) touched by
+        the squares ``|x - cx| <= reach, |y - cy| <= reach`` widened by :attr:`slack`."""
+        c = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        half = (np.asarray(reaches, dtype=np.float64).reshape(-1) + self.slack)[:, None]
+        lo = np.maximum(self._cells(c - half), 0)
+        hi = np.minimum(self._cells(c + half), [int(self.shape[0]) - 1, int(self.shape[1]) - 1])
+        return lo, hi
+
     def cells(self, centres, reaches) -> np.ndarray:
         """``(cells + 1,)`` bool: the grid cells touched by the squares
         ``|x - cx| <= reach, |y - cy| <= reach`` (``centres (B, 2)``, ``reaches (B,)``), indexed
         by :attr:`keys` (the last entry, the points in no cell, is False)."""
         n0, n1 = int(self.shape[0]), int(self.shape[1])
         wanted = np.zeros(n0 * n1 + 1, dtype=bool)  # the last entry: points in no cell
-        c = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
-        half = (np.asarray(reaches, dtype=np.float64).reshape(-1) + self.slack)[:, None]
-        lo = np.maximum(self._cells(c - half), 0)
-        hi = np.minimum(self._cells(c + half), [n0 - 1, n1 - 1])
         grid = wanted[:-1].reshape(n0, n1)
-        for (i0, j0), (i1, j1) in zip(lo, hi, strict=True):
+        for (i0, j0), (i1, j1) in zip(*self._ranges(centres, reaches), strict=True):
             if i0 <= i1 and j0 <= j1:
                 grid[i0:i1 + 1, j0:j1 + 1] = True
         return wanted
@@ -140,30 +172,90 @@ class SweepIndex:
         ``|x - cx| <= reach, |y - cy| <= reach`` (``centres (B, 2)``, ``reaches (B,)``)."""
         return np.flatnonzero(self.cells(centres, reaches)[self.keys])
 
+    def near(self, centres, reaches) -> _NearBoxes:
+        """The points of :meth:`rows` for these squares, arranged so that each square finds
+        its own cells' points without a pass over them all (:class:`_NearBoxes`)."""
+        return _NearBoxes(self, centres, reaches)
 
-def _ground_from(near: np.ndarray, local: np.ndarray, size: np.ndarray, cfg: CropConfig):
+
+class _NearBoxes:
+    """The points of a sweep in the grid cells touched by the squares around some boxes
+    (:attr:`rows`: :meth:`SweepIndex.rows`, sorted sweep indices), sorted by cell once, with
+    their x and y in contiguous arrays, so that each box finds the points of its own square
+    (:meth:`square`) without a pass over them all.
+
+    The cell order is a stable sort of the points' cells, so each cell's points keep the sweep
+    order. A box's cells of one grid row are consecutive keys, so one slice of the cell order
+    each: the points of the same cells as :meth:`SweepIndex.rows` of that box alone, a
+    superset of its square. The exact test of :func:`_surroundings` runs on them, then the
+    sort of the points kept (runs already sorted, merged by a stable sort) restores the sweep
+    order: the same points in the same order as the test on the whole sweep.
+    """
+
+    def __init__(self, index: SweepIndex, centres, reaches):
+        self.index, self.rows = index, index.rows(centres, reaches)
+        self.x, self.y = index.x[self.rows], index.y[self.rows]
+        keys = index.keys[self.rows]
+        self.order = np.argsort(keys, kind="stable")
+        n = int(index.shape[0] * index.shape[1])
+        # starts[k]: where cell k begins in the cell order (rows hold no point in no cell)
+        self.starts = [0] + np.cumsum(np.bincount(keys, minlength=n + 1)).tolist()
+        lo, hi = index._ranges(centres, reaches)
+        self._cells = np.c_[lo, hi].tolist()  # per box: i0, j0, i1, j1
+
+    def square(self, b: int, pose: np.ndarray, reach: float) -> np.ndarray:
+        """Sorted positions (into :attr:`rows`) of the points in the square of box ``b``
+        (``centres[b]``, ``reaches[b]`` of the constructor; its ``pose`` and ``reach``)."""
+        i0, j0, i1, j1 = self._cells[b]
+        if i0 > i1 or j0 > j1:  # the square misses the grid
+            return np.zeros(0, dtype=np.intp)
+        n1, st = int(self.index.shape[1]), self.starts
+        own = np.concatenate([self.order[st[k + j0]:st[k + j1 + 1]]
+                              for k in range(i0 * n1, i1 * n1 + 1, n1)])
+        own = own[_in_square(self.x[own], self.y[own], pose, reach)]
+        return np.sort(own, kind="stable")
+
+
+def _ground_from(near: np.ndarray, local: np.ndarray, size: np.ndarray, cfg: CropConfig,
+                 absolute: np.ndarray | None = None, fresh_rng=None):
     """The local ground plane from the box's surroundings (``_surroundings`` with a reach of at
-    least ``cfg.context``), or None."""
+    least ``cfg.context``), or None. ``absolute``: ``np.abs(local)`` when the caller has it;
+    ``fresh_rng``: a :class:`_FreshRng` of ``cfg.seed`` when the caller has one."""
     if len(near) < cfg.min_ground_points:
         return None
     bottom = -size[2] / 2
-    ax, ay = np.abs(local[:, 0]), np.abs(local[:, 1])
+    a = np.abs(local) if absolute is None else absolute
+    ax, ay, z = a[:, 0], a[:, 1], local[:, 2]
     keep = ((ax <= size[0] / 2 + cfg.context) & (ay <= size[1] / 2 + cfg.context)
             & ((ax > size[0] / 2) | (ay > size[1] / 2))
-            & (local[:, 2] >= bottom - cfg.band_below) & (local[:, 2] <= bottom + cfg.band_above))
-    cand = near[keep]
+            & (z >= bottom - cfg.band_below) & (z <= bottom + cfg.band_above))
+    cand = np.compress(keep, near, axis=0)
     if len(cand) < cfg.min_ground_points:
         return None
-    rng = np.random.default_rng(cfg.seed)
+    rng = np.random.default_rng(cfg.seed) if fresh_rng is None else fresh_rng()
     best, count = _ransac_plane(cand, rng, cfg.iterations, 0.08, cfg.max_tilt_deg)
     if best is None or count < cfg.min_ground_points:
         return None
     n, d = best
-    inl = cand[np.abs(cand @ n + d) < 0.08]
+    inl = np.compress(np.abs(cand @ n + d) < 0.08, cand, axis=0)
     n2, d2 = _fit_plane(inl)
     if n2[2] >= np.cos(np.radians(cfg.max_tilt_deg)):
         n, d = n2, d2
     return n, float(d)
+
+
+class _FreshRng:
+    """``np.random.default_rng(seed)`` for box after box, six times cheaper: one generator,
+    set back to its first state at each call. The state (of its bit generator) is all a
+    ``Generator`` remembers, so the draws are those of a new ``default_rng(seed)``."""
+
+    def __init__(self, seed):
+        self.rng = np.random.default_rng(seed)
+        self.state = self.rng.bit_generator.state
+
+    def __call__(self) -> np.random.Generator:
+        self.rng.bit_generator.state = self.state
+        return self.rng
 
 
 def local_ground(points, pose, size, cfg: CropConfig = CropConfig()):
@@ -190,24 +282,34 @@ def crop_vehicle(points, pose, size, cfg: CropConfig = CropConfig(),
 def crop_vehicles(points, poses, sizes, cfg: CropConfig = CropConfig(),
                   sweep_plane=None) -> list[np.ndarray]:
     """:func:`crop_vehicle` of every box ``poses[i], sizes[i]`` of one sweep, equal to it crop
-    by crop, point by point: the sweep is bucketed once (:class:`SweepIndex`) and each box
-    tests only the points of the grid cells around it."""
+    by crop, point by point: the sweep is bucketed once (:class:`SweepIndex`), the points of
+    the cells near any box sorted by cell once (:class:`_NearBoxes`), and each box tests only
+    the points of the grid cells around it.
+
+    Why the crops are the same: each box's points of its cells are a superset of its
+    surroundings, in sweep order; the exact test of :func:`_surroundings` runs on them with
+    the same operands (the float x, y values against the box's float64 centre and reach), so
+    it keeps the same points in the same order; their float64 coordinates are the same values
+    (a conversion), and everything after (:func:`_crop_near`) is the code of
+    :func:`crop_vehicle` on the same arrays.
+    """
     pts = np.asarray(points)[:, :3]
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
     sizes = np.asarray(sizes, dtype=np.float64).reshape(-1, 3)
     if len(poses) == 0:
         return []
     extra = _reach_extra(cfg)
-    reaches = np.array([_reach(s, extra) for s in sizes])
-    # the points that can be near any box, in sweep order, then those of each box's own cells:
-    # each box finds the same points in the same order among them as in the whole sweep
+    reaches = [_reach(s, extra) for s in sizes]
     index = SweepIndex(pts)
-    rows = index.rows(poses[:, :2], reaches)
-    near, keys = pts[rows], index.keys[rows]
+    near = index.near(poses[:, :2], reaches)
+    fresh_rng = _FreshRng(cfg.seed)
+    z = pts[:, 2][near.rows]
     out = []
-    for p, s, r in zip(poses, sizes, reaches, strict=True):
-        own = near[np.flatnonzero(index.cells(p[None, :2], [r])[keys])] if len(poses) > 1 else near
-        out.append(_crop_one(own, p, s, cfg, sweep_plane))
+    for b, (p, s, r) in enumerate(zip(poses, sizes, reaches, strict=True)):
+        own = near.square(b, p, r)
+        box = np.empty((len(own), 3))  # = pts[near.rows[own]].astype(np.float64)
+        box[:, 0], box[:, 1], box[:, 2] = near.x[own], near.y[own], z[own]
+        out.append(_crop_near(box, _to_box(box, p), s, cfg, sweep_plane, fresh_rng))
     return out
 
 
@@ -222,12 +324,26 @@ def _crop_one(pts: np.ndarray, pose, size, cfg: CropConfig, sweep_plane) -> np.n
     pose = np.asarray(pose, dtype=np.float64)
     size = np.asarray(size, dtype=np.float64)
     near, local = _surroundings(pts, pose, size, _reach_extra(cfg))
+    return _crop_near(near, local, size, cfg, sweep_plane)
+
+
+def _crop_near(near: np.ndarray, local: np.ndarray, size: np.ndarray, cfg: CropConfig,
+               sweep_plane, fresh_rng=None) -> np.ndarray:
+    """The crop from the box's surroundings ``near (K, 3)`` (float64, sensor frame) and
+    ``local`` (the same in the box frame): the points in the enlarged box above the ground.
+
+    The box test compares each of the three absolute coordinates with its half side, the
+    test ``np.all(np.abs(local) <= half, axis=1)`` column by column (the same comparisons,
+    without a slow reduction over rows of three), and the absolute values serve the ground
+    fit too."""
+    a = np.abs(local)
     half = size / 2 + [cfg.margin, cfg.margin, cfg.margin_z]
-    inbox = np.all(np.abs(local) <= half, axis=1)
-    cand = near[inbox]
+    inbox = (a[:, 0] <= half[0]) & (a[:, 1] <= half[1]) & (a[:, 2] <= half[2])
+    cand = np.compress(inbox, near, axis=0)
     if cfg.ground == "none" or len(cand) == 0:
         return np.ascontiguousarray(cand, dtype=np.float32)
-    plane = _ground_from(near, local, size, cfg) if cfg.ground == "plane" else None
+    plane = (_ground_from(near, local, size, cfg, a, fresh_rng) if cfg.ground == "plane"
+             else None)
     if plane is None and cfg.ground == "plane":
         plane = sweep_plane() if callable(sweep_plane) else sweep_plane
     if plane is not None:
@@ -235,7 +351,7 @@ def _crop_one(pts: np.ndarray, pose, size, cfg: CropConfig, sweep_plane) -> np.n
         above = cand @ np.asarray(n, dtype=np.float64) + d >= cfg.ground_threshold
     else:
         above = local[inbox, 2] >= -size[2] / 2 + cfg.box_ground
-    return np.ascontiguousarray(cand[above], dtype=np.float32)
+    return np.compress(above, cand, axis=0).astype(np.float32)
 
 
 def crop_box(points, pose, size, margin: float = 0.2, ground: float | None = 0.15) -> np.ndarray:
