@@ -223,10 +223,7 @@ def _nn_from_triangles(pts: np.ndarray, ids: np.ndarray | None, sides) -> np.nda
     if float(area2.sum()) != hull2:
         ask = ~np.isfinite(nn)  # in no triangle
         ask[_boundary_vertices(ids, len(pts))] = True
-        query = pts[ask]
-        if len(pts) < 2:
-            return None
-        d, _ = cKDTree(pts, balanced_tree=False).query(query, k=2)  # col 0: the point itself
+        d, _ = cKDTree(pts, balanced_tree=False).query(pts[ask], k=2)  # col 0: the point
         nn[ask] = d[:, 1]
     return nn if np.isfinite(nn).all() else None
 
@@ -236,11 +233,16 @@ def _boundary_vertices(ids: np.ndarray, n: int) -> np.ndarray:
     i = ids.astype(np.int64)
     a, b = i.ravel(), i[:, [1, 2, 0]].ravel()
     key = np.sort(np.minimum(a, b) * n + np.maximum(a, b))
+    key = key[_unique_entries(key)]
+    return np.unique(np.concatenate([key // n, key % n]))
+
+
+def _unique_entries(key: np.ndarray) -> np.ndarray:
+    """Which entries of the sorted ``key`` equal neither neighbour (the edges met once)."""
     single = np.ones(len(key), dtype=bool)
     single[1:] &= key[1:] != key[:-1]
     single[:-1] &= key[:-1] != key[1:]
-    key = key[single]
-    return np.unique(np.concatenate([key // n, key % n]))
+    return single
 
 
 def _auto_radius_fast(pts: np.ndarray, ids: np.ndarray | None, sides, radii: np.ndarray
@@ -285,9 +287,7 @@ def _fill_polygons(pts: np.ndarray, tri: np.ndarray, ids: np.ndarray | None, ima
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     key = np.sort((lo * n + hi) * 2 + (a > b))
     und = key >> 1
-    single = np.ones(len(key), dtype=bool)
-    single[1:] &= und[1:] != und[:-1]
-    single[:-1] &= und[:-1] != und[1:]
+    single = _unique_entries(und)
     shared = und[~single][::2]  # each shared edge once (its two copies are neighbours)
     key = key[single]
     lo, hi, flip = (key >> 1) // n, (key >> 1) % n, (key & 1).astype(bool)
