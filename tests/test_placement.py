@@ -342,3 +342,59 @@ def test_points_option_sets_the_input_size():
         np.testing.assert_allclose(narrow[i], out, rtol=1e-5, atol=1e-6)
     with pytest.raises(ConfigError, match="points"):
         P.RefinerConfig(points=0)
+
+
+def test_percentiles_1_99_equal_numpys_bit_for_bit():
+    rng = np.random.default_rng(3)
+    for k in (2, 3, 7, 100, 101, 1024, 2048):
+        for q in (rng.normal(size=(3, k, 3)) * 5, np.round(rng.normal(size=(2, k, 3)), 1)):
+            lo, hi = P.percentiles_1_99(q)
+            ref_lo, ref_hi = np.percentile(q, [1, 99], axis=1)
+            assert np.array_equal(lo, ref_lo) and np.array_equal(hi, ref_hi)
+    q = rng.normal(size=(2, 50, 3))
+    q[1, 4, 2] = np.nan  # numpy's own path: NaN where a column holds one
+    lo, _ = P.percentiles_1_99(q)
+    assert np.isnan(lo[1, 2]) and np.isfinite(lo[0]).all()
+
+
+@pytest.mark.parametrize("backend", ["torch-lean", "onnx"])
+def test_engine_refiner_equals_the_module(backend):
+    if backend == "onnx":
+        pytest.importorskip("onnxruntime")
+        pytest.importorskip("onnx")
+    ref = _shift_refiner(random_head=True)
+    torch.manual_seed(2)
+    with torch.no_grad():
+        for p in ref.net.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    torch.manual_seed(0)
+    est = Estimator(ShapePoseNet(CFG), threads=1, backend=backend, refiner=ref)
+    run = est._refiner_run()
+    assert run is not None
+    rng = np.random.default_rng(4)
+    for b, n in ((1, 256), (1, 1), (7, 64), (40, 256)):  # 40 x 256 rows: the two-thread pass
+        xyz = rng.normal(size=(b, n, 3)).astype(np.float32)
+        cond = rng.normal(size=(b, len(P.COND_FIELDS))).astype(np.float32)
+        with torch.no_grad():
+            slow = ref.net(torch.from_numpy(xyz), torch.from_numpy(cond)).numpy()
+        np.testing.assert_allclose(run(xyz, cond), slow, rtol=1e-4, atol=1e-5)
+
+
+def test_refined_steps_agree_across_backends():
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    from seqshape.model.engine import TOLERANCE
+
+    torch.manual_seed(0)
+    model = ShapePoseNet(CFG)
+    tracks = [box_track(f"t{i}", "val", np.random.default_rng(10 + i), 5, 2) for i in range(6)]
+    out = {}
+    for backend in ("torch", "onnx"):
+        est = Estimator(model, threads=1, backend=backend, refiner=_shift_refiner(random_head=True))
+        assert (est._refiner_run() is None) == (backend == "torch")
+        out[backend] = [est.step([t.track_id for t in tracks], [t.points[k] for t in tracks])
+                        for k in range(5)]
+    for a_step, b_step in zip(out["torch"], out["onnx"], strict=True):
+        for a, b in zip(a_step, b_step, strict=True):
+            np.testing.assert_allclose(b.pose[:3], a.pose[:3], atol=TOLERANCE[1] * 5)
+            np.testing.assert_allclose(b.complete, a.complete, atol=TOLERANCE[0])

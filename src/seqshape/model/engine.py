@@ -247,6 +247,48 @@ class OneTrackGraph(StepGraph):
         return complete, pose, h, frame_mean
 
 
+class RefinerGraph(nn.Module):
+    """The placement refiner's network (:class:`~seqshape.model.placement.PlacementRefiner`)
+    for export: ``(xyz (B, n, 3), cond (B, C)) -> (B, 4)``, the arithmetic of
+    :meth:`~seqshape.model.placement.PlacementRefiner.forward` (the first layer of the second
+    point MLP split, its global half once a frame; rows beyond a frame's points are copies)."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.mlp1, self.head = net.mlp1, net.head
+        first, c = net.mlp2[0], net.mlp1[-1].out_features
+        self.register_buffer("wx", first.weight[:, :c].contiguous().detach())
+        self.register_buffer("wg", first.weight[:, c:].contiguous().detach())
+        self.register_buffer("b", first.bias.detach().clone())
+        self.rest = net.mlp2[1:]
+
+    def forward(self, xyz: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        b, n, c = xyz.shape
+        x = self.mlp1(xyz.reshape(b * n, c))  # (B n, 64)
+        g = x.reshape(b, n, -1).amax(dim=1)
+        y = F.linear(x, self.wx).reshape(b, n, -1) + F.linear(g, self.wg, self.b).unsqueeze(1)
+        y = self.rest(y.reshape(b * n, -1)).reshape(b, n, -1).amax(dim=1)
+        return self.head(torch.cat([y, cond], dim=1))
+
+
+def export_refiner_onnx(net: nn.Module) -> bytes:
+    """The ONNX model (bytes) of :class:`RefinerGraph` of a refiner's network, dynamic batch
+    and point axes (inputs ``xyz``, ``cond``; output ``correction``)."""
+    require("onnx", "exporting the placement refiner to ONNX", "seqshape[fast]")
+    graph = RefinerGraph(net).eval()
+    cond = graph.head[0].in_features - graph.wx.shape[0]
+    example = (torch.zeros(2, 5, 3), torch.zeros(2, cond))
+    buf = io.BytesIO()
+    with warnings.catch_warnings(), torch.inference_mode():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(graph, example, buf, input_names=["xyz", "cond"],
+                          output_names=["correction"],
+                          dynamic_axes={"xyz": {0: "batch", 1: "points"}, "cond": {0: "batch"},
+                                        "correction": {0: "batch"}},
+                          opset_version=ONNX_OPSET, dynamo=False)
+    return buf.getvalue()
+
+
 @dataclass
 class StepInputs:
     """Numpy inputs of one step of the rows a backend computes (see :data:`GRAPH_INPUTS`)."""
@@ -277,6 +319,7 @@ class TorchGraphEngine:
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         self.threads = threads or 1
         self.graph = StepGraph(model).eval()
+        self._refiner: tuple | None = None  # (net, RefinerGraph)
 
     def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
         """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""
@@ -284,6 +327,19 @@ class TorchGraphEngine:
         with torch.inference_mode(), _torch_threads(self.threads):
             out = self.graph(*args)
         return tuple(o.numpy() for o in out)
+
+    def refiner(self, net: nn.Module) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        """The forward pass of a placement refiner's network on this engine's torch threads
+        (:class:`RefinerGraph`), so that it shares the network's thread pool."""
+        if self._refiner is None or self._refiner[0] is not net:
+            self._refiner = (net, RefinerGraph(net).eval())
+        graph = self._refiner[1]
+
+        def run(xyz: np.ndarray, cond: np.ndarray) -> np.ndarray:
+            with torch.inference_mode(), _torch_threads(self.threads):
+                return graph(torch.from_numpy(xyz), torch.from_numpy(cond)).numpy()
+
+        return run
 
 
 class OnnxEngine:
@@ -315,6 +371,7 @@ class OnnxEngine:
         self._ort, self._graphs = ort, (batch, one)
         self._wide: list[_Session | None] = [None, None]
         self._spare_at, self._spare = -np.inf, False
+        self._refiner: tuple | None = None  # (net, one-thread session, wide session)
 
     def wide(self, one_track: bool) -> _Session | None:
         """The two-thread session of the batch or the one-track graph (None when ``threads``
@@ -341,6 +398,27 @@ class OnnxEngine:
     def one_graph_bytes(self, model: ShapePoseNet) -> bytes:
         """The ONNX model of :class:`OneTrackGraph` this engine runs (likewise cached)."""
         return cached_graph(model, "one", lambda: export_onnx(model, one_track=True))
+
+    def refiner(self, net: nn.Module) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        """The forward pass of a placement refiner's network (``xyz``, ``cond`` -> ``(B, 4)``)
+        on ONNX Runtime, with the thread rule of :meth:`run` (two threads for passes of at
+        least :data:`LARGE_PASS_ROWS` points while a core is free). Numpy's own forward would
+        run on OpenBLAS's threads, which keep spinning after each product and take the core
+        the next network pass counts on (measured: 100 live tracks 650 against 930 updates/s
+        with OpenBLAS held to one thread; docs/model.md)."""
+        if self._refiner is None or self._refiner[0] is not net:
+            graph = cached_graph(net, "refiner", lambda: export_refiner_onnx(net))
+            one = _Session(self._ort, graph, self.threads or 1)
+            wide = _Session(self._ort, graph, self.more) if self.more > 1 else None
+            self._refiner = (net, one, wide)
+        _, one, wide = self._refiner
+
+        def run(xyz: np.ndarray, cond: np.ndarray) -> np.ndarray:
+            big = xyz.shape[0] * xyz.shape[1] >= LARGE_PASS_ROWS
+            session = wide if wide is not None and big and self.spare() else one
+            return session.session.run(None, {"xyz": xyz, "cond": cond})[0]
+
+        return run
 
     def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
         """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""

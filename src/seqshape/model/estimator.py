@@ -480,7 +480,7 @@ class Estimator:
         """The placement refiner over one step's tracks (one batched pass); an empty frame's
         carried estimate gets its track's last correction."""
         c, p = np.stack(complete), np.stack(pose)
-        corr = self.refiner.corrections_of(frames, c, p)
+        corr = self.refiner.corrections_of(frames, c, p, run=self._refiner_run())
         for i, st in enumerate(states):
             if np.isfinite(corr[i, 0]):
                 st.correction = corr[i]
@@ -488,6 +488,13 @@ class Estimator:
                 corr[i] = st.correction
         new_c, new_p = apply_corrections(c, p, corr)
         return list(new_c), list(new_p)
+
+    def _refiner_run(self):
+        """The refiner network's forward on this estimator's engine (its threads; None:
+        numpy, for the reference backend)."""
+        engine = self._engine
+        return None if engine is None or not hasattr(engine, "refiner") \
+            else engine.refiner(self.refiner.net)
 
     def _check(self, name: str) -> bool:
         """``backend="auto"``'s test of backend ``name`` (its engine is kept when it passes);

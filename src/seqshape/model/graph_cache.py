@@ -52,7 +52,7 @@ MAX_BYTES = 1 << 29
 FORMAT = b"seqshape-onnx-graph/1"
 PREFIX = "seqshape-graph-"  # the cache's file names: PREFIX + key + ".onnx"
 _DIGEST = 32
-_SOURCES = ("network.py", "engine.py", "transforms.py")
+_SOURCES = ("network.py", "engine.py", "transforms.py", "placement.py")
 _warned: set[str] = set()
 
 
@@ -89,9 +89,11 @@ def _code_digest() -> bytes:
 
 def graph_key(model, kind: str) -> str:
     """The cache key (hex SHA-256, module doc) of graph ``kind`` of ``model``
-    (a :class:`~seqshape.model.network.ShapePoseNet`)."""
+    (a :class:`~seqshape.model.network.ShapePoseNet`, or a placement refiner's network, which
+    has no kind nor configuration beyond its weights' shapes)."""
     h = hashlib.sha256(FORMAT)
-    meta = {"kind": kind, "model": model.kind, "cfg": model.cfg.to_dict(),
+    cfg = model.cfg.to_dict() if hasattr(model, "cfg") else {}
+    meta = {"kind": kind, "model": getattr(model, "kind", type(model).__name__), "cfg": cfg,
             "versions": [__version__, _version("torch"), _version("onnx"),
                          _version("onnxruntime")]}
     h.update(json.dumps(meta, sort_keys=True, default=str).encode())
