@@ -106,7 +106,7 @@ def test_correction_moves_pose_along_its_axes_and_shape_rigidly():
     # heading +y: 0.5 m ahead is +y, 0.2 m to the right is +x
     np.testing.assert_allclose(p[0], [10.2, 4.5, -0.9, math.pi / 2 + 0.1], atol=1e-5)
     np.testing.assert_allclose(sensor_to_canonical(c[0], p[0]), canon, atol=1e-5)
-    np.testing.assert_allclose(last, [0.5, -0.2, 0.1, 0.1], atol=1e-5)
+    np.testing.assert_allclose(last, [0.5, -0.2, 0.1, 0.1, 0.0, 0.0], atol=1e-5)
     # a vehicle twice as long as SCALE_REF: the shift is in units of the input scale
     long = canonical_to_sensor(canon * [2 * P.SCALE_REF / 4.0, 1, 1], pose[0])
     _, p2, _ = ref.refine_sequence(frames, long[None].astype(np.float32), pose)
@@ -398,3 +398,56 @@ def test_refined_steps_agree_across_backends():
         for a, b in zip(a_step, b_step, strict=True):
             np.testing.assert_allclose(b.pose[:3], a.pose[:3], atol=TOLERANCE[1] * 5)
             np.testing.assert_allclose(b.complete, a.complete, atol=TOLERANCE[0])
+
+
+def test_size_corrections_stretch_the_shape_about_its_centre():
+    rng = np.random.default_rng(0)
+    canon = rng.uniform(-1, 1, size=(400, 3)) * [2.2, 0.9, 0.7]
+    pose = np.array([10.0, 4.0, -0.9, 0.6])
+    placed = P._move(canon, np.zeros(4), pose)[None].astype(np.float32)
+    corr = np.array([[0.2, -0.1, 0.0, 0.05, math.log(1.1), math.log(0.9)]])
+    c, p = P.apply_corrections(placed, pose[None], corr)
+    np.testing.assert_allclose(p[0], P.apply_delta(pose, corr[0]), atol=1e-12)
+    q = sensor_to_canonical(c[0], p[0])
+    np.testing.assert_allclose(q, canon * [1.1, 0.9, 1.0], atol=1e-4)  # float32 shape
+    ext = P.extents_of(c[0], p[0]) / P.extents_of(placed[0], pose)
+    np.testing.assert_allclose(ext, [1.1, 0.9, 1.0], rtol=1e-4)
+    same = P.apply_corrections(placed, pose[None], np.r_[corr[0, :4], 0, 0][None])
+    moved = P.apply_corrections(placed, pose[None], corr[:, :4])
+    assert np.array_equal(same[0], moved[0])  # zero size columns: the rigid move, bit for bit
+
+
+def test_size_head_is_applied_once_clipped_and_can_be_turned_off():
+    torch.manual_seed(0)
+    net = P.build_net(16, outputs=6)
+    with torch.no_grad():
+        net.head[-1].bias.copy_(torch.tensor([0.1, 0.0, 0.0, 0.0, 0.05, 0.9]))
+    frames = [np.random.default_rng(1).normal(size=(50, 3)) + [12, 0, -1]]
+    pose = np.array([[12.0, 0.0, -1.0, 0.0]])
+    ext = np.array([[7.0, 2.5, 3.0]])  # 6 m and more: three passes
+    poses, sizes = P.PlacementRefiner(net).refine(frames, pose, ext)
+    np.testing.assert_allclose(sizes, [[0.05, 0.3]])  # the first pass's, clipped to max_resize
+    assert poses[0, 0] > 12.0 + 0.25  # the pose took every pass
+    off = P.PlacementRefiner(net, P.RefinerConfig(size=False)).refine(frames, pose, ext)[1]
+    assert np.all(off == 0)
+    old = P.PlacementRefiner(P.build_net(16))  # no size head: zero size columns
+    assert np.all(old.corrections_of(frames, np.zeros((1, 10, 3)) + [12, 0, -1], pose)[:, 4:] == 0)
+
+
+def test_size_head_file_round_trip_and_engine(tmp_path):
+    torch.manual_seed(3)
+    ref = P.PlacementRefiner(P.build_net(16, outputs=6))
+    with torch.no_grad():
+        for p in ref.net.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    ref.save(tmp_path / "r.pt")
+    back = P.PlacementRefiner.load(tmp_path / "r.pt")
+    assert back.net.outputs == 6
+    xyz = np.random.default_rng(0).normal(size=(3, 40, 3)).astype(np.float32)
+    cond = np.random.default_rng(1).normal(size=(3, len(P.COND_FIELDS))).astype(np.float32)
+    np.testing.assert_allclose(back.forward(xyz, cond), ref.forward(xyz, cond), rtol=1e-6)
+    est = Estimator(ShapePoseNet(CFG), threads=1, backend="torch-lean", refiner=back)
+    np.testing.assert_allclose(est._refiner_run()(xyz, cond), ref.forward(xyz, cond),
+                               rtol=1e-4, atol=1e-5)
+    with pytest.raises(ConfigError, match="4 or 6 outputs"):
+        P.build_net(16, outputs=5)

@@ -135,3 +135,54 @@ def test_cli_trains_from_dataset_folders(data, tmp_path, monkeypatch, capsys):
     assert "val, sequential" in text and "val, baseline" in text
     assert (out / "refiner.pt").exists() and len(list((out / "frames").glob("*.npz"))) == 4
     assert main(argv[:-2] + ["--every", "1", "2", "3"]) == 1  # one --every per folder
+
+
+def test_collected_sizes_are_the_true_shapes_extents(data, frames):
+    first = list(data.split("train"))[0]
+    np.testing.assert_allclose(frames["size"][0], P.extents_of(first.complete, np.zeros(4)))
+    assert np.all(np.isfinite(frames["size"])) and frames["size"].shape == (len(frames["n"]), 3)
+
+
+def test_size_targets_and_loss(frames):
+    idx = np.arange(min(6, len(frames["n"])))
+    _, _, tgt = R.make_batch(frames, idx, np.random.default_rng(0), 0.0)
+    want = np.log(frames["size"][idx, :2] / frames["ext"][idx, :2])  # no jitter: the estimate's
+    np.testing.assert_allclose(tgt[:, 4:6].numpy(), want, rtol=1e-5, atol=1e-6)
+    out = torch.zeros(len(idx), 6)
+    total, centre, axis, size = R.loss_terms(out, tgt)
+    assert float(size) > 0 and math.isclose(float(total), float(centre + 0.5 * axis + 0.5 * size),
+                                            rel_tol=1e-6)
+    tgt[:, 4:6] = float("nan")  # sizes unknown: no size term, a finite loss
+    total, *_, size = R.loss_terms(out, tgt)
+    assert float(size) == 0 and math.isfinite(float(total))
+    assert float(R.loss_terms(out[:, :4], tgt)[3]) == 0  # a network without the size head
+
+
+def test_size_head_warm_start_keeps_the_placement_and_learns_sizes(frames, tmp_path):
+    torch.manual_seed(0)
+    init = P.PlacementRefiner(P.build_net())
+    with torch.no_grad():
+        for p in init.net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    cfg = R.RefinerTrainConfig(steps=1, batch=4, lr=1e-12, size=True)
+    ref = R.train_refiner(frames, {}, tmp_path / "warm", cfg, init=init)
+    assert ref.net.outputs == 6
+    idx = list(range(min(5, len(frames["n"]))))
+    pts = [R.frame_points(frames, i) for i in idx]
+    a = init.corrections(pts, frames["est"][idx], frames["ext"][idx], seeds=idx)
+    b = ref.corrections(pts, frames["est"][idx], frames["ext"][idx], seeds=idx)
+    np.testing.assert_allclose(b[:, :4], a, atol=1e-6)  # lr ~0: the placement is init's
+    assert np.abs(b[:, 4:]).max() < 1e-6  # the new rows start at 0
+    loaded = P.PlacementRefiner.load(tmp_path / "warm" / "refiner.pt")
+    assert loaded.net.outputs == 6
+    # trained for real, the size head moves the extents toward the true ones
+    cfg = R.RefinerTrainConfig(steps=150, batch=16, lr=3e-3, size=True, jitter=1.0)
+    ref = R.train_refiner(frames, {"train": frames}, tmp_path / "trained", cfg, init=init)
+    before, after = ref.meta["val"]["train"]["estimated"], ref.meta["val"]["train"]["refined"]
+    assert after["length_median"] < before["length_median"]
+
+
+def test_size_needs_true_shapes(frames, tmp_path):
+    blind = {**frames, "size": np.full_like(frames["size"], np.nan)}
+    with pytest.raises(ConfigError, match="no training frame has a true shape"):
+        R.train_refiner(blind, {}, tmp_path, R.RefinerTrainConfig(steps=1, size=True))

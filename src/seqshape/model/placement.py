@@ -37,6 +37,11 @@ WIDTH = 128  # the second PointNet's width
 COND_FIELDS = ("length/s", "width/s", "height/s", "sensor_dir_x", "sensor_dir_y",
                "log_range/4", "log_points/7", "s/4")
 FORMAT = "seqshape-placement-refiner"
+#: Columns of a correction (:meth:`PlacementRefiner.corrections_of`): the pose's (dx, dy, dz,
+#: dyaw) in the box frame, then the log ratios of the placed shape's length and width (0 for
+#: a refiner without the size head).
+CORRECTION_FIELDS = ("dx", "dy", "dz", "dyaw", "log_length", "log_width")
+SIZE_OUTPUTS = 6
 #: The refiner network's forward pass, ``(xyz (B, n, 3), cond (B, C)) -> (B, 4)`` float32.
 Forward = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -145,16 +150,19 @@ def _net_class():
     from seqshape.model.network import mlp
 
     class RefinerNet(nn.Module):
-        """PointNet (3-64-64 / 128-W-W, max-pools) + conditioning -> (dx, dy, dz, dyaw).
+        """PointNet (3-64-64 / 128-W-W, max-pools) + conditioning -> (dx, dy, dz, dyaw) and,
+        with ``outputs`` 6, (log length ratio, log width ratio) of the placed shape.
 
         The last layer starts at zero: an untrained refiner leaves the estimate as it is."""
 
-        def __init__(self, width: int = WIDTH):
+        def __init__(self, width: int = WIDTH, outputs: int = 4):
             super().__init__()
-            self.width = int(width)
+            if outputs not in (4, 6):
+                raise ConfigError(f"a refiner has 4 or 6 outputs, got {outputs}")
+            self.width, self.outputs = int(width), int(outputs)
             self.mlp1 = mlp([3, 64, 64], point_wise=True)
             self.mlp2 = mlp([128, width, width], point_wise=True)
-            self.head = mlp([width + len(COND_FIELDS), 256, 128, 4])
+            self.head = mlp([width + len(COND_FIELDS), 256, 128, outputs])
             nn.init.zeros_(self.head[-1].weight)
             nn.init.zeros_(self.head[-1].bias)
 
@@ -167,9 +175,10 @@ def _net_class():
     return RefinerNet
 
 
-def build_net(width: int = WIDTH):
-    """A fresh :class:`RefinerNet` (the identity refinement)."""
-    return _net_class()(width)
+def build_net(width: int = WIDTH, outputs: int = 4):
+    """A fresh :class:`RefinerNet` (the identity refinement); ``outputs`` 6: with the size
+    head (:data:`SIZE_OUTPUTS`)."""
+    return _net_class()(width, outputs)
 
 
 @dataclass(frozen=True)
@@ -190,6 +199,9 @@ class RefinerConfig:
     repeat_min_length: ... and the estimate is at least this long (m, its extents).
     points: points fed per frame (a seeded subset of a larger frame; a smaller one repeated),
         the refiner's arithmetic; the shipped refiner was trained with 256.
+    size: apply a size head's correction of the shape's length and width (refiners trained
+        with ``--size``; a refiner without one changes no size).
+    max_resize: the size correction's log ratio is clipped to this (0.3: x0.74 to x1.35).
     """
 
     iterations: int = 3
@@ -200,6 +212,8 @@ class RefinerConfig:
     repeat_min_points: int = 1
     repeat_min_length: float = 6.0
     points: int = NUM_POINTS
+    size: bool = True
+    max_resize: float = 0.3
 
     def __post_init__(self):
         if self.points < 1:
@@ -234,7 +248,7 @@ class PlacementRefiner:
             raise DataError(path, f"not a readable refiner file ({exc})") from None
         if not isinstance(payload, dict) or payload.get("format") != FORMAT:
             raise DataError(path, f"not a {FORMAT} file")
-        net = build_net(int(payload.get("width", WIDTH)))
+        net = build_net(int(payload.get("width", WIDTH)), int(payload.get("outputs", 4)))
         try:
             net.load_state_dict(payload["state_dict"])
         except (KeyError, RuntimeError) as exc:
@@ -248,14 +262,15 @@ class PlacementRefiner:
         from seqshape._io import atomic_write_bytes
 
         buf = io.BytesIO()
-        torch.save({"format": FORMAT, "width": self.net.width,
+        torch.save({"format": FORMAT, "width": self.net.width, "outputs": self.net.outputs,
                     "state_dict": self.net.state_dict(), "meta": self.meta}, buf)
         atomic_write_bytes(Path(path), buf.getvalue())
 
     def corrections(self, points: Sequence[np.ndarray], poses: np.ndarray,
                     extents: np.ndarray, seeds: Sequence[int],
                     reference: bool = False, run: Forward | None = None) -> np.ndarray:
-        """``(F, 4)`` corrections ``(dx, dy, dz, dyaw)`` in each pose's box frame (m, rad).
+        """``(F, 4)`` corrections ``(dx, dy, dz, dyaw)`` in each pose's box frame (m, rad),
+        ``(F, 6)`` with the size head's log ratios of length and width.
 
         The network runs in numpy (:meth:`forward`: a few small matrix products, no framework
         overhead on a one-track step), or in ``run`` (the same function on an inference
@@ -302,8 +317,17 @@ class PlacementRefiner:
         """Refined copies of ``poses (F, 4)`` (sensor frame) from each frame's points; frames
         with fewer than ``min_points`` points or a non-finite pose are returned unchanged
         (``run``: as in :meth:`corrections`)."""
+        return self.refine(points, poses, extents, seeds, run)[0]
+
+    def refine(self, points: Sequence[np.ndarray], poses: np.ndarray, extents: np.ndarray,
+               seeds: Sequence[int] | None = None, run: Forward | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`refine_poses` and the size corrections ``(F, 2)``: the log ratios of the
+        shape's length and width (the first pass's, clipped to ``max_resize``; 0 without a
+        size head, with ``config.size`` off, or for a frame left alone)."""
         cfg = self.config
         poses = np.array(poses, dtype=np.float64).reshape(-1, 4)
+        sizes = np.zeros((len(poses), 2))
         seeds = list(range(len(poses))) if seeds is None else list(seeds)
         ok = [i for i, p in enumerate(points) if len(p) >= max(cfg.min_points, 1)
               and np.all(np.isfinite(poses[i])) and np.all(np.isfinite(extents[i][:1]))]
@@ -312,6 +336,8 @@ class PlacementRefiner:
                 break
             d = self.corrections([points[i] for i in ok], poses[ok], np.asarray(extents)[ok],
                                  [self.seed + 1000003 * it + seeds[i] for i in ok], run=run)
+            if it == 0 and cfg.size and d.shape[1] >= SIZE_OUTPUTS:
+                sizes[ok] = np.clip(d[:, 4:6], -cfg.max_resize, cfg.max_resize)
             shift = np.clip(d[:, :3], -cfg.max_shift, cfg.max_shift)
             turn = np.clip(d[:, 3], -cfg.max_turn, cfg.max_turn)
             yaw = poses[ok, 3]
@@ -324,26 +350,27 @@ class PlacementRefiner:
             ok = [i for i, m in zip(ok, moved, strict=True)
                   if m >= cfg.repeat_shift and len(points[i]) >= cfg.repeat_min_points
                   and extents[i][0] >= cfg.repeat_min_length]
-        return poses
+        return poses, sizes
 
     def corrections_of(self, frames: Sequence[np.ndarray], complete: np.ndarray,
                        poses: np.ndarray, seeds: Sequence[int] | None = None,
                        run: Forward | None = None) -> np.ndarray:
-        """``(F, 4)`` corrections (:func:`delta`) of independent frames, one batched pass;
-        NaN rows for the frames left alone (fewer than ``min_points`` points, a non-finite
-        pose). ``frames``: per frame the points the network got; ``complete`` (F, K, 3) and
+        """``(F, 6)`` corrections of independent frames (:data:`CORRECTION_FIELDS`: the pose's,
+        :func:`delta`, and the shape's size), one batched pass; NaN rows for the frames left
+        alone (fewer than ``min_points`` points, a non-finite pose). ``frames``: per frame the points the network got; ``complete`` (F, K, 3) and
         ``poses`` (F, 4) its estimates; ``seeds``: per frame, the seed of the points' subset
         (when a frame has more than ``config.points``); ``run``: as in :meth:`corrections`."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
-        corr = np.full((len(poses), 4), np.nan)
+        corr = np.full((len(poses), len(CORRECTION_FIELDS)), np.nan)
         idx = [i for i, f in enumerate(frames) if len(f) >= max(self.config.min_points, 1)
                and np.all(np.isfinite(poses[i]))]
         if idx:
             complete = np.asarray(complete)
-            new = self.refine_poses([frames[i] for i in idx], poses[idx],
-                                    extents_batch(complete[idx], poses[idx]),
-                                    None if seeds is None else [seeds[i] for i in idx], run)
-            corr[idx] = delta(poses[idx], new)
+            new, sizes = self.refine([frames[i] for i in idx], poses[idx],
+                                     extents_batch(complete[idx], poses[idx]),
+                                     None if seeds is None else [seeds[i] for i in idx], run)
+            corr[idx, :4] = delta(poses[idx], new)
+            corr[idx, 4:] = sizes
         return corr
 
     def refine_sequence(self, frames: Sequence[np.ndarray], complete: np.ndarray,
@@ -375,8 +402,10 @@ class PlacementRefiner:
 def apply_corrections(complete: np.ndarray, poses: np.ndarray, corr: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Copies of ``complete`` (F, K, 3) and ``poses`` (F, 4) moved by the corrections ``corr``
-    (F, 4) (:func:`delta`; a NaN row, or a non-finite pose: left as it is; an all-zero row:
-    bit for bit as it is), each shape moved rigidly with its pose."""
+    (F, 4) (:func:`delta`) or (F, 6) (:data:`CORRECTION_FIELDS`; a NaN row, or a non-finite
+    pose: left as it is; an all-zero row: bit for bit as it is), each shape moved rigidly
+    with its pose and, with size columns, stretched along its box axes about its centre by
+    their exponentials."""
     complete = np.asarray(complete)
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
     out_c, out_p = np.array(complete, copy=True), poses.copy()
@@ -385,8 +414,9 @@ def apply_corrections(complete: np.ndarray, poses: np.ndarray, corr: np.ndarray
     if moved:
         for i in moved:
             out_p[i] = apply_delta(poses[i], corr[i])
-        out_c[moved] = _move_batch(complete[moved], poses[moved],
-                                   out_p[moved]).astype(complete.dtype)
+        scale = np.exp(corr[moved, 4:6]) if corr.shape[1] > 4 else None
+        out_c[moved] = _move_batch(complete[moved], poses[moved], out_p[moved],
+                                   scale).astype(complete.dtype)
     return out_c, out_p
 
 
@@ -446,10 +476,15 @@ def _to_box(points: np.ndarray, poses: np.ndarray, c: np.ndarray | None = None,
     return q
 
 
-def _move_batch(points: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+def _move_batch(points: np.ndarray, old: np.ndarray, new: np.ndarray,
+                scale: np.ndarray | None = None) -> np.ndarray:
     """``points (B, K, 3)`` placed with poses ``old (B, 4)`` re-placed with ``new`` (each
-    cloud moved rigidly, as :func:`_move`)."""
+    cloud moved rigidly, as :func:`_move`; ``scale`` (B, 2): first stretched by these factors
+    along its box's x and y axes, about the box centre; rows of exactly 1 are left as they
+    are)."""
     q = _to_box(np.asarray(points, dtype=np.float64), old)
+    if scale is not None:
+        q[..., :2] *= scale[:, None, :]
     c, s = np.cos(new[:, 3])[:, None], np.sin(new[:, 3])[:, None]
     out = np.empty(q.shape)
     out[..., 0] = c * q[..., 0] - s * q[..., 1] + new[:, None, 0]

@@ -14,6 +14,7 @@ from pathlib import Path
 from seqshape.data import TrackDataset
 from seqshape.errors import ConfigError
 from seqshape.model.estimator import Estimator
+from seqshape.model.placement import load_refiner
 from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 from seqshape.train.refiner import (
     RefinerTrainConfig,
@@ -27,7 +28,7 @@ from seqshape.train.refiner import (
 
 HELP = "train the placement refiner on the networks' own estimates"
 FIELDS = ["steps", "batch", "lr", "jitter", "max_error", "minutes", "checkpoint_every", "seed",
-          "threads"]
+          "threads", "size"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -46,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--resume", action="store_true",
                         help="continue from OUT/refiner.ckpt (the same options)")
+    parser.add_argument("--init", default="none",
+                        help="start from this refiner's weights: 'pretrained', a refiner file "
+                             "or 'none' (a size head added by --size starts at 0)")
     add_config_arguments(parser, RefinerTrainConfig, FIELDS)
 
 
@@ -81,7 +85,10 @@ def run(args: argparse.Namespace) -> int:
                 elif len(frames["n"]):
                     val[f"{data.name} val, {kind}"] = frames
     meta = {"data": [str(d) for d in args.data], "every": every, "models": models}
-    refiner = train_refiner(concat_frames(train), val, args.out, cfg, args.resume, meta)
+    init = load_refiner(args.init)
+    if init is not None:
+        meta["init"] = args.init
+    refiner = train_refiner(concat_frames(train), val, args.out, cfg, args.resume, meta, init)
     print(describe(refiner.meta["val"]))
     print(f"wrote {args.out / 'refiner.pt'} (use it with --refiner {args.out / 'refiner.pt'})")
     return 0

@@ -43,7 +43,7 @@ from seqshape.model.offline import estimate_tracks
 log = logging.getLogger(__name__)
 
 STORED_POINTS = 512  # points kept per frame (a random subset of a larger frame)
-FRAME_KEYS = ("est", "ext", "true", "n", "pts", "cls")
+FRAME_KEYS = ("est", "ext", "true", "n", "pts", "cls", "size")
 
 
 @dataclass(frozen=True)
@@ -60,6 +60,9 @@ class RefinerTrainConfig:
     checkpoint_every: steps between checkpoints.
     seed: the batches, the jitter, the subsets and the weights' initialisation.
     threads: intra-op threads (and the estimators' while collecting).
+    size: train the size head too (:data:`~seqshape.model.placement.SIZE_OUTPUTS`): the log
+        ratios of the true shape's length and width (1st-99th percentiles) to the estimate's,
+        half the smooth L1 (beta 0.02) in the loss; frames without a true shape do not count.
     """
 
     steps: int = 10000
@@ -71,6 +74,7 @@ class RefinerTrainConfig:
     checkpoint_every: int = 500
     seed: int = 0
     threads: int = 1
+    size: bool = False
 
     def __post_init__(self):
         if self.steps < 1 or self.batch < 1:
@@ -84,7 +88,8 @@ def collect_frames(estimator, dataset, every: int = 1, seed: int = 0,
     """Online estimates of ``estimator`` on every ``every``-th track of ``dataset`` (a
     :class:`~seqshape.data.dataset.TrackDataset` or a list of tracks), one row per frame with
     points (module doc, 1): ``est`` (F, 4), ``ext`` (F, 3), ``true`` (F, 4), ``n`` (F,)
-    points, ``pts`` (F, STORED_POINTS, 3) float32 (NaN rows past ``n``), ``cls`` (F,)."""
+    points, ``pts`` (F, STORED_POINTS, 3) float32 (NaN rows past ``n``), ``cls`` (F,),
+    ``size`` (F, 3) the true shape's extents (NaN without one)."""
     rng = np.random.default_rng(seed)
     rows: dict[str, list] = {k: [] for k in FRAME_KEYS}
     tracks = [dataset[i] for i in range(0, len(dataset), max(int(every), 1))]
@@ -92,6 +97,8 @@ def collect_frames(estimator, dataset, every: int = 1, seed: int = 0,
         det = np.flatnonzero(tr.num_points > 0)
         if not len(det):
             continue
+        size = np.full(3, np.nan) if tr.complete is None or not len(tr.complete) \
+            else P.extents_of(tr.complete, np.zeros(4))
         frames = range(int(det[0]), int(det[-1]) + 1)
         egos = [tr.ego_pose(t) for t in frames]
         res = estimate_tracks(estimator, [{
@@ -114,6 +121,7 @@ def collect_frames(estimator, dataset, every: int = 1, seed: int = 0,
             rows["n"].append(len(p))
             rows["pts"].append(buf)
             rows["cls"].append(str(tr.meta.get("class") or "car"))
+            rows["size"].append(size)
     if not rows["n"]:
         return _empty_frames()
     return {k: np.asarray(v) for k, v in rows.items()}
@@ -122,7 +130,7 @@ def collect_frames(estimator, dataset, every: int = 1, seed: int = 0,
 def _empty_frames() -> dict[str, np.ndarray]:
     return {"est": np.zeros((0, 4)), "ext": np.zeros((0, 3)), "true": np.zeros((0, 4)),
             "n": np.zeros(0, np.int64), "pts": np.zeros((0, STORED_POINTS, 3), np.float32),
-            "cls": np.zeros(0, "<U8")}
+            "cls": np.zeros(0, "<U8"), "size": np.zeros((0, 3))}
 
 
 def save_frames(path: Path, frames: Mapping[str, np.ndarray]) -> None:
@@ -133,7 +141,9 @@ def load_frames(path: Path) -> dict[str, np.ndarray]:
     """Frames of :func:`collect_frames` saved with :func:`save_frames`."""
     try:
         with np.load(path) as z:
-            out = {k: z[k] for k in FRAME_KEYS}
+            out = {k: z[k] for k in FRAME_KEYS if k != "size" or k in z.files}
+            if "size" not in out:  # a file from before the size head: sizes unknown
+                out["size"] = np.full((len(out["n"]), 3), np.nan)
     except (OSError, ValueError, KeyError) as exc:
         raise DataError(path, f"not a frames file of train-refiner ({exc})") from None
     n = len(out["n"])
@@ -170,8 +180,9 @@ def _mirror(pts: np.ndarray, est: np.ndarray, true: np.ndarray) -> None:
 
 def make_batch(frames: Mapping[str, np.ndarray], idx: np.ndarray, rng: np.random.Generator,
                jitter: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Inputs ``(xyz (B, n, 3), cond (B, C))`` and targets ``(B, 4)`` (the centre in units of
-    the input scale) of frames ``idx``, augmented with ``rng`` (module doc, 2)."""
+    """Inputs ``(xyz (B, n, 3), cond (B, C))`` and targets ``(B, 6)`` (the centre in units of
+    the input scale, the axis, the log ratios of the true length and width to the estimate's
+    extents: NaN where unknown) of frames ``idx``, augmented with ``rng`` (module doc, 2)."""
     xyz, cond, tgt = [], [], []
     for i in idx:
         pts = frame_points(frames, i).astype(np.float64)
@@ -185,7 +196,7 @@ def make_batch(frames: Mapping[str, np.ndarray], idx: np.ndarray, rng: np.random
         if rng.random() < 0.5:
             _mirror(pts, est, true)
         x, _, c, s = P.refine_inputs(pts, est, ext, rng)
-        t = P.targets(est, true)[0]
+        t = np.r_[P.targets(est, true)[0], np.log(frames["size"][i, :2] / ext[:2])]
         t[:3] /= s
         xyz.append(x)
         cond.append(c)
@@ -195,35 +206,69 @@ def make_batch(frames: Mapping[str, np.ndarray], idx: np.ndarray, rng: np.random
 
 
 def loss_terms(out: torch.Tensor, tgt: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """``(total, centre, axis)`` losses (module doc, 2)."""
+    """``(total, centre, axis, size)`` losses (module doc, 2; ``size`` 0 for a network
+    without the size head or a batch without known sizes)."""
     centre = F.smooth_l1_loss(out[:, :3], tgt[:, :3], beta=0.05)
     axis = F.smooth_l1_loss(out[:, 3], tgt[:, 3], beta=0.02)
-    return centre + 0.5 * axis, centre, axis
+    size = out.new_zeros(())
+    if out.shape[1] > 4:
+        known = torch.isfinite(tgt[:, 4:6])
+        if bool(known.any()):
+            size = F.smooth_l1_loss(out[:, 4:6][known], tgt[:, 4:6][known], beta=0.02)
+    return centre + 0.5 * axis + 0.5 * size, centre, axis, size
 
 
 def placement_errors(refiner: P.PlacementRefiner | None, frames: Mapping[str, np.ndarray],
                      limit: int | None = None, seed: int = 1) -> dict[str, float]:
-    """Median and mean bird's-eye centre error (m) and median axis error (deg) of the
-    estimates in ``frames`` (None: as estimated) or refined (``limit``: a seeded random subset
-    of that many frames)."""
+    """Median and mean bird's-eye centre error (m), median axis error (deg) and median
+    length and width errors (m, where the true shape is known) of the estimates in
+    ``frames`` (None: as estimated) or refined (``limit``: a seeded random subset of that
+    many frames)."""
     idx = np.arange(len(frames["n"]))
     if limit is not None and len(idx) > limit:
         idx = np.sort(np.random.default_rng(seed).choice(idx, limit, replace=False))
-    poses = frames["est"][idx]
+    poses, ext = frames["est"][idx], frames["ext"][idx, :2]
     if refiner is not None:
-        poses = refiner.refine_poses([frame_points(frames, i) for i in idx], poses,
-                                     frames["ext"][idx], seeds=list(idx))
+        poses, sizes = refiner.refine([frame_points(frames, i) for i in idx], poses,
+                                      frames["ext"][idx], seeds=list(idx))
+        ext = ext * np.exp(sizes)
     err = np.hypot(*(poses[:, :2] - frames["true"][idx, :2]).T)
     axis = np.degrees(np.abs(P.targets(poses, frames["true"][idx])[:, 3]))
+    size_err = np.abs(ext - frames["size"][idx, :2])
+    known = np.isfinite(size_err[:, 0])
+    med = (lambda a: float(np.median(a))) if known.any() else (lambda a: float("nan"))
     return {"frames": int(len(idx)), "centre_median": float(np.median(err)),
-            "centre_mean": float(np.mean(err)), "axis_median_deg": float(np.median(axis))}
+            "centre_mean": float(np.mean(err)), "axis_median_deg": float(np.median(axis)),
+            "length_median": med(size_err[known, 0]), "width_median": med(size_err[known, 1])}
+
+
+def _warm_start(net, init) -> None:
+    """Copy ``init``'s weights into ``net`` (same width); the rows of ``net``'s last layer
+    beyond ``init``'s (the size head) stay 0, so ``net`` starts as ``init`` with no size
+    correction."""
+    src = init.state_dict()
+    with torch.no_grad():
+        for name, t in net.state_dict().items():
+            if name not in src:
+                continue
+            a = src[name]
+            if a.shape == t.shape:
+                t.copy_(a)
+            elif a.shape[1:] == t.shape[1:] and a.shape[0] < t.shape[0]:
+                t[:a.shape[0]].copy_(a)
+            else:
+                raise ConfigError(f"--init refiner's {name} {tuple(a.shape)} does not fit "
+                                  f"{tuple(t.shape)} (another --width?)")
 
 
 def train_refiner(train: Mapping[str, np.ndarray], val: Mapping[str, Mapping[str, np.ndarray]],
                   out: Path, cfg: RefinerTrainConfig, resume: bool = False,
-                  meta: dict | None = None) -> P.PlacementRefiner:
+                  meta: dict | None = None, init: P.PlacementRefiner | None = None
+                  ) -> P.PlacementRefiner:
     """Train a refiner on ``train`` frames (module doc), checking it on each of ``val``; writes
-    ``out/refiner.ckpt`` as it goes and ``out/refiner.pt`` at the end; returns the refiner."""
+    ``out/refiner.ckpt`` as it goes and ``out/refiner.pt`` at the end; returns the refiner.
+    ``init``: start from this refiner's weights (a size head added to one without starts at
+    0)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(cfg.threads)
@@ -231,10 +276,16 @@ def train_refiner(train: Mapping[str, np.ndarray], val: Mapping[str, Mapping[str
     train = {k: v[keep] for k, v in train.items()}
     if not len(train["n"]):
         raise ConfigError("no training frames (every estimate beyond --max-error, or no data)")
+    if cfg.size and not np.isfinite(train["size"][:, 0]).any():
+        raise ConfigError("--size: no training frame has a true shape (tracks without "
+                          "'complete', or frames cached before the size head: remove "
+                          "OUT/frames)")
     log.info("refiner: %d training frames (%d left out beyond %.1f m)", len(train["n"]),
              int((~keep).sum()), cfg.max_error)
     torch.manual_seed(cfg.seed)
-    net = P.build_net()
+    net = P.build_net(outputs=P.SIZE_OUTPUTS if cfg.size else 4)
+    if init is not None:  # warm start: every weight of ``init`` that fits (a new head row: 0)
+        _warm_start(net, init.net)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=cfg.steps,
                                                 pct_start=0.05)
@@ -260,7 +311,7 @@ def train_refiner(train: Mapping[str, np.ndarray], val: Mapping[str, Mapping[str
         while step < cfg.steps:
             idx = rng.integers(0, len(train["n"]), cfg.batch)
             xyz, cond, tgt = make_batch(train, idx, rng, cfg.jitter)
-            loss, _, _ = loss_terms(net(xyz, cond), tgt)
+            loss = loss_terms(net(xyz, cond), tgt)[0]
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -301,13 +352,17 @@ def _checkpoint(path: Path, net, opt, sched, rng, step: int, cfg: RefinerTrainCo
 def describe(scores: Mapping[str, Mapping[str, Mapping[str, float]]]) -> str:
     """A markdown table of :func:`train_refiner`'s validation figures."""
     lines = ["| set | frames | centre median (cm), estimated -> refined | centre mean (cm) "
-             "| axis median (deg) |", "|---|---:|---|---|---|"]
+             "| axis median (deg) | \\|length\\| median (cm) | \\|width\\| median (cm) |",
+             "|---|---:|---|---|---|---|---|"]
     for name, s in scores.items():
         a, b = s["estimated"], s["refined"]
         lines.append(f"| {name} | {a['frames']} | {100 * a['centre_median']:.1f} -> "
                      f"{100 * b['centre_median']:.1f} | {100 * a['centre_mean']:.1f} -> "
                      f"{100 * b['centre_mean']:.1f} | {a['axis_median_deg']:.2f} -> "
-                     f"{b['axis_median_deg']:.2f} |")
+                     f"{b['axis_median_deg']:.2f} | {100 * a.get('length_median', np.nan):.1f} "
+                     f"-> {100 * b.get('length_median', np.nan):.1f} | "
+                     f"{100 * a.get('width_median', np.nan):.1f} -> "
+                     f"{100 * b.get('width_median', np.nan):.1f} |")
     return "\n".join(lines)
 
 
