@@ -425,8 +425,12 @@ def test_size_head_is_applied_once_clipped_and_can_be_turned_off():
     frames = [np.random.default_rng(1).normal(size=(50, 3)) + [12, 0, -1]]
     pose = np.array([[12.0, 0.0, -1.0, 0.0]])
     ext = np.array([[7.0, 2.5, 3.0]])  # 6 m and more: three passes
-    poses, sizes = P.PlacementRefiner(net).refine(frames, pose, ext)
+    poses, sizes = P.PlacementRefiner(net, P.RefinerConfig(size_width=True)).refine(frames, pose,
+                                                                                      ext)
     np.testing.assert_allclose(sizes, [[0.05, 0.3]])  # the first pass's, clipped to max_resize
+    default = P.PlacementRefiner(net).refine(frames, pose, ext)
+    np.testing.assert_allclose(default[1], [[0.05, 0.0]])  # by default the length only
+    np.testing.assert_array_equal(default[0], poses)
     assert poses[0, 0] > 12.0 + 0.25  # the pose took every pass
     off = P.PlacementRefiner(net, P.RefinerConfig(size=False)).refine(frames, pose, ext)[1]
     assert np.all(off == 0)

@@ -16,6 +16,9 @@ Inputs (:func:`refine_inputs`, one function for training and inference): up to `
 (a seeded random subset) in the box frame divided by the scale ``s = clip(L / SCALE_REF, 1,
 SCALE_MAX)`` of the estimated length L, so a bus reaches the network at a car's scale, and
 the conditioning vector :data:`COND_FIELDS`. Output corrections are multiplied back by s.
+A refiner with the size head (``outputs=6``, :data:`CORRECTION_FIELDS`) also regresses the log
+ratios of the true length and width to the placed shape's, which stretch the shape about its
+centre (:class:`RefinerConfig` ``size``, ``size_width``; docs/model.md, "Size head").
 """
 
 from __future__ import annotations
@@ -201,6 +204,7 @@ class RefinerConfig:
         the refiner's arithmetic; the shipped refiner was trained with 256.
     size: apply a size head's correction of the shape's length and width (refiners trained
         with ``--size``; a refiner without one changes no size).
+    size_width: with ``size``, correct the width too (False: the length only).
     max_resize: the size correction's log ratio is clipped to this (0.3: x0.74 to x1.35).
     """
 
@@ -213,6 +217,7 @@ class RefinerConfig:
     repeat_min_length: float = 6.0
     points: int = NUM_POINTS
     size: bool = True
+    size_width: bool = False
     max_resize: float = 0.3
 
     def __post_init__(self):
@@ -338,6 +343,8 @@ class PlacementRefiner:
                                  [self.seed + 1000003 * it + seeds[i] for i in ok], run=run)
             if it == 0 and cfg.size and d.shape[1] >= SIZE_OUTPUTS:
                 sizes[ok] = np.clip(d[:, 4:6], -cfg.max_resize, cfg.max_resize)
+                if not cfg.size_width:
+                    sizes[ok, 1] = 0.0
             shift = np.clip(d[:, :3], -cfg.max_shift, cfg.max_shift)
             turn = np.clip(d[:, 3], -cfg.max_turn, cfg.max_turn)
             yaw = poses[ok, 3]
