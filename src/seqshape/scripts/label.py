@@ -39,6 +39,7 @@ from pathlib import Path
 import seqshape.scripts.export_tracks as export_tracks
 from seqshape._io import contained_path, safe_stem
 from seqshape._runner import WorkerPool
+from seqshape._threads import limit_openblas
 from seqshape.amodal.labeler import (
     MODES,
     LabelConfig,
@@ -314,7 +315,9 @@ def _ready(started) -> bool:
 
 def _worker_start() -> None:
     """Start of a drawing worker: nothing to load (unpickling this function has imported the
-    labeller, OpenCV and SciPy: while the parent imports PyTorch and loads the estimator)."""
+    labeller, OpenCV and SciPy: while the parent imports PyTorch and loads the estimator);
+    OpenBLAS held to one thread (:mod:`seqshape._threads`)."""
+    limit_openblas(1)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -358,6 +361,9 @@ def _label(args: argparse.Namespace, jobs: list, weights: str | None) -> int:
     # in runs of frames); this process completes the tracks (the estimator runs here only)
     # and writes each log's files once all its frames are drawn, in the order of the logs.
     # At most `workers` logs wait for their frames (their clouds are held here until then).
+    # With workers every core is busy: OpenBLAS's spinning threads would only take cores from
+    # the other processes (one worker alone gains from them: sc-seg 0.85x without; docs/amodal.md)
+    limit_openblas(1)
     with WorkerPool(args.workers, initializer=_worker_start) as pool:
         todo = deque(jobs)
         opened: deque = deque(_open_one(args, todo.popleft(), pool)
