@@ -6,9 +6,9 @@ or ONNX Runtime's own threads (the labeller's workers and its parent), those spi
 take the cores the other pools and processes want: `seqshape label --workers 2` on dense logs
 spent 44 CPU-seconds for 23 s of wall clock with OpenBLAS's default, 35 for 19 s with one
 OpenBLAS thread a process, the labels byte for byte the same (docs/amodal.md); with one
-worker, where a core may be free, sc-seg lost (0.85x), so only multi-worker runs set it. The limit is
-set with threadpoolctl (scikit-learn's, a dependency), for OpenBLAS only: PyTorch's and ONNX
-Runtime's pools are left to their own settings.
+worker, where a core may be free, sc-seg lost (0.85x), so only multi-worker runs set it. The
+limit is set with threadpoolctl (scikit-learn's, a dependency), for OpenBLAS only: PyTorch's
+and ONNX Runtime's pools are left to their own settings.
 """
 
 from __future__ import annotations

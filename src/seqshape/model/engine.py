@@ -104,6 +104,32 @@ TOLERANCE = (2e-3, 2e-4, 1e-3)
 INT8_TOLERANCE = (6e-2, TOLERANCE[1], TOLERANCE[2])
 
 
+def split_first_layer(first: nn.Linear, c: int) -> tuple[torch.Tensor, ...]:
+    """``(W_x, W_g, b)`` of the first layer of a PointNet's second MLP on ``[x, g]`` (``c`` the
+    per-point width), contiguous copies: :func:`split_pointnet` applies the global half once a
+    frame instead of once a point."""
+    w = first.weight.detach()
+    return w[:, :c].contiguous(), w[:, c:].contiguous(), first.bias.detach().clone()
+
+
+def split_pointnet(x: torch.Tensor, mlp1: nn.Module, wx: torch.Tensor, wg: torch.Tensor,
+                   b: torch.Tensor, rest: nn.Module | None) -> torch.Tensor:
+    """Features (B, F) of a two-stage PointNet (``mlp1`` -> max-pool g -> [x, g] -> second MLP
+    -> max-pool) on points (B, N, C) whose padded rows are copies; the second MLP's first layer
+    given split (:func:`split_first_layer`), ``rest`` its layers after the ReLU (None: none).
+
+    The per-point layers run on (B * N, C) matrices, so that ONNX Runtime fuses their biases
+    and ReLUs into the matrix products (Gemm / FusedGemm nodes). The network's encoder
+    (:class:`StepGraph`) and the placement refiner's (:class:`RefinerGraph`) are both this."""
+    n_b, n, c = x.shape
+    x = mlp1(x.reshape(n_b * n, c))  # (B * N, C1)
+    g = x.reshape(n_b, n, -1).amax(dim=1)  # (B, C1)
+    y = F.linear(x, wx).reshape(n_b, n, -1) + F.linear(g, wg, b).unsqueeze(1)
+    if rest is not None:
+        y = rest(torch.relu(y).reshape(n_b * n, -1))
+    return y.reshape(n_b, n, -1).amax(dim=1)  # (B, F)
+
+
 class StepGraph(nn.Module):
     """One streaming step of ``model`` (see the module docstring for the signature).
 
@@ -117,11 +143,11 @@ class StepGraph(nn.Module):
         self.cfg, self.recurrent, self.motion = cfg, model.recurrent, model.motion
         enc = model.encoder
         self.mlp1 = enc.mlp1
-        first, c = enc.mlp2[0], cfg.encoder1[-1]
         # mlp2's first layer on [x, g]: x W_x^T + (g W_g^T + b), the global half once a frame
-        self.register_buffer("w2x", first.weight[:, :c].contiguous().detach())
-        self.register_buffer("w2g", first.weight[:, c:].contiguous().detach())
-        self.register_buffer("b2", first.bias.detach().clone())
+        w2x, w2g, b2 = split_first_layer(enc.mlp2[0], cfg.encoder1[-1])
+        self.register_buffer("w2x", w2x)
+        self.register_buffer("w2g", w2g)
+        self.register_buffer("b2", b2)
         self.mlp2_rest = enc.mlp2[2:] if len(enc.mlp2) > 1 else None
         self.fusion, self.skip = model.fusion, model.skip
         if self.recurrent:
@@ -131,17 +157,9 @@ class StepGraph(nn.Module):
         self.shape_decoder, self.pose_decoder = model.shape_decoder, model.pose_decoder
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
-        """Frame features (B, F) of demeaned points (B, N, C) whose padded rows are copies.
-
-        The per-point layers run on (B * N, C) matrices, so that ONNX Runtime fuses their
-        biases and ReLUs into the matrix products (Gemm / FusedGemm nodes)."""
-        b, n, c = x.shape
-        x = self.mlp1(x.reshape(b * n, c))  # (B * N, C1)
-        g = x.reshape(b, n, -1).amax(dim=1)  # (B, C1)
-        y = F.linear(x, self.w2x).reshape(b, n, -1) + F.linear(g, self.w2g, self.b2).unsqueeze(1)
-        if self.mlp2_rest is not None:
-            y = self.mlp2_rest(torch.relu(y).reshape(b * n, -1))
-        return y.reshape(b, n, -1).amax(dim=1)  # (B, F)
+        """Frame features (B, F) of demeaned points (B, N, C) whose padded rows are copies
+        (:func:`split_pointnet`)."""
+        return split_pointnet(x, self.mlp1, self.w2x, self.w2g, self.b2, self.mlp2_rest)
 
     def gru(self, f: torch.Tensor, m: torch.Tensor | None, h: torch.Tensor) -> torch.Tensor:
         """``nn.GRUCell`` on ``[f, m]`` spelled out (PyTorch's gate order r, z, n)."""
@@ -249,25 +267,21 @@ class OneTrackGraph(StepGraph):
 
 class RefinerGraph(nn.Module):
     """The placement refiner's network (:class:`~seqshape.model.placement.PlacementRefiner`)
-    for export: ``(xyz (B, n, 3), cond (B, C)) -> (B, 4)``, the arithmetic of
-    :meth:`~seqshape.model.placement.PlacementRefiner.forward` (the first layer of the second
-    point MLP split, its global half once a frame; rows beyond a frame's points are copies)."""
+    for export: ``(xyz (B, n, 3), cond (B, C)) -> (B, 4)`` or ``(B, 6)`` with the size head,
+    the arithmetic of :meth:`~seqshape.model.placement.PlacementRefiner.forward`
+    (:func:`split_pointnet`; rows beyond a frame's points are copies)."""
 
     def __init__(self, net: nn.Module):
         super().__init__()
         self.mlp1, self.head = net.mlp1, net.head
-        first, c = net.mlp2[0], net.mlp1[-1].out_features
-        self.register_buffer("wx", first.weight[:, :c].contiguous().detach())
-        self.register_buffer("wg", first.weight[:, c:].contiguous().detach())
-        self.register_buffer("b", first.bias.detach().clone())
-        self.rest = net.mlp2[1:]
+        wx, wg, b = split_first_layer(net.mlp2[0], net.mlp1[-1].out_features)
+        self.register_buffer("wx", wx)
+        self.register_buffer("wg", wg)
+        self.register_buffer("b", b)
+        self.rest = net.mlp2[2:] if len(net.mlp2) > 1 else None
 
     def forward(self, xyz: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        b, n, c = xyz.shape
-        x = self.mlp1(xyz.reshape(b * n, c))  # (B n, 64)
-        g = x.reshape(b, n, -1).amax(dim=1)
-        y = F.linear(x, self.wx).reshape(b, n, -1) + F.linear(g, self.wg, self.b).unsqueeze(1)
-        y = self.rest(y.reshape(b * n, -1)).reshape(b, n, -1).amax(dim=1)
+        y = split_pointnet(xyz, self.mlp1, self.wx, self.wg, self.b, self.rest)
         return self.head(torch.cat([y, cond], dim=1))
 
 
@@ -400,8 +414,8 @@ class OnnxEngine:
         return cached_graph(model, "one", lambda: export_onnx(model, one_track=True))
 
     def refiner(self, net: nn.Module) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-        """The forward pass of a placement refiner's network (``xyz``, ``cond`` -> ``(B, 4)``)
-        on ONNX Runtime, with the thread rule of :meth:`run` (two threads for passes of at
+        """The forward pass of a placement refiner's network (``xyz``, ``cond`` -> ``(B, 4)``,
+        ``(B, 6)`` with the size head) on ONNX Runtime, with the thread rule of :meth:`run` (two threads for passes of at
         least :data:`LARGE_PASS_ROWS` points while a core is free). Numpy's own forward would
         run on OpenBLAS's threads, which keep spinning after each product and take the core
         the next network pass counts on (measured: 100 live tracks 650 against 930 updates/s

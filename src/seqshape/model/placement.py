@@ -45,7 +45,8 @@ FORMAT = "seqshape-placement-refiner"
 #: a refiner without the size head).
 CORRECTION_FIELDS = ("dx", "dy", "dz", "dyaw", "log_length", "log_width")
 SIZE_OUTPUTS = 6
-#: The refiner network's forward pass, ``(xyz (B, n, 3), cond (B, C)) -> (B, 4)`` float32.
+#: The refiner network's forward pass, ``(xyz (B, n, 3), cond (B, C)) -> (B, 4)`` (``(B, 6)``
+#: with the size head), float32.
 Forward = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
@@ -364,9 +365,10 @@ class PlacementRefiner:
                        run: Forward | None = None) -> np.ndarray:
         """``(F, 6)`` corrections of independent frames (:data:`CORRECTION_FIELDS`: the pose's,
         :func:`delta`, and the shape's size), one batched pass; NaN rows for the frames left
-        alone (fewer than ``min_points`` points, a non-finite pose). ``frames``: per frame the points the network got; ``complete`` (F, K, 3) and
-        ``poses`` (F, 4) its estimates; ``seeds``: per frame, the seed of the points' subset
-        (when a frame has more than ``config.points``); ``run``: as in :meth:`corrections`."""
+        alone (fewer than ``min_points`` points, a non-finite pose). ``frames``: per frame
+        the points the network got; ``complete`` (F, K, 3) and ``poses`` (F, 4) its
+        estimates; ``seeds``: per frame, the seed of the points' subset (when a frame has more
+        than ``config.points``); ``run``: as in :meth:`corrections`."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
         corr = np.full((len(poses), len(CORRECTION_FIELDS)), np.nan)
         idx = [i for i, f in enumerate(frames) if len(f) >= max(self.config.min_points, 1)
