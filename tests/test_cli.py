@@ -65,13 +65,14 @@ RELEASED = {
         "classes": "car,van,truck,bus,trailer", "dataset": "kitti", "ground": "plane",
         "margin": 0.2, "min_points": 10, "out": "o", "reference": True,
         "reference_points": 2048, "root": "r", "sequence": None, "shard": "1/1", "split": None,
-        "split_by": "log", "val_fraction": 0.2, "workers": 1}),
+        "split_by": "log", "val_fraction": 0.2, "workers": 1, "keep_duplicates": False}),
     "tracks+flags": (["--dataset", "kitti", "--root", "r", "--out", "o", "--no-reference",
                       "--split", "val", "--margin", "0.5"], {
         "classes": "car,van,truck,bus,trailer", "dataset": "kitti", "ground": "plane",
         "margin": 0.5, "min_points": 10, "out": "o", "reference": False,
         "reference_points": 2048, "root": "r", "sequence": None, "shard": "1/1",
-        "split": "val", "split_by": "log", "val_fraction": 0.2, "workers": 1}),
+        "split": "val", "split_by": "log", "val_fraction": 0.2, "workers": 1,
+        "keep_duplicates": False}),
 }
 
 

@@ -372,3 +372,52 @@ def test_kitti_root_round_trip(tmp_path):
         np.testing.assert_array_equal(_sorted_rows(got), _sorted_rows(interior))
         np.testing.assert_allclose(gpose, pose, atol=1e-5)
     np.testing.assert_allclose(tr.size, SIZE, atol=1e-5)
+
+
+def _b(oid, x, y, cls="car"):
+    return Box3D(track_id=oid, category="CAR", cls=cls, centre=[x, y, -0.9], size=SIZE, yaw=0.0)
+
+
+def test_duplicate_annotations_are_found_by_hand():
+    from seqshape.data.extract import duplicate_objects
+
+    frames = [
+        # a and b coincide (2 cm apart), c is a car beside them (2 m), d a van on a's spot
+        [_b("a", 10, 0), _b("b", 10.02, 0), _b("c", 10, 2.0), _b("d", 10.1, 0, "van")],
+        [_b("a", 11, 0), _b("b", 11.0, 0.03), _b("c", 11, 2.0)],
+        [_b("a", 12, 0), _b("c", 12, 2.0)],  # b ends: a has more frames, a stays
+        [_b("e", 5, 5), _b("f", 5.4, 5)],  # e and f coincide in their one shared frame
+        [_b("e", 6, 5), _b("f", 9, 5)],  # ... but not in the next: 1 of 2 < 90 %
+    ]
+    assert duplicate_objects(frames) == {"b": "a"}
+    # a chain: g~h in the first frame, h~i in the second; i has the most frames and stays
+    chain = [[_b("g", 0, 10), _b("h", 0.3, 10)], [_b("h", 1, 10), _b("i", 1.3, 10)],
+             [_b("g", 2, 10), _b("h", 2.1, 10), _b("i", 2.2, 10)], [_b("i", 3, 10)],
+             [_b("i", 4, 10)]]
+    assert duplicate_objects(chain) == {"g": "i", "h": "i"}
+    # a tie in frames: the smaller id stays
+    assert duplicate_objects([[_b("z", 0, 0), _b("y", 0.1, 0)]]) == {"z": "y"}
+    assert duplicate_objects([]) == {} and duplicate_objects([[_b("a", 0, 0)]]) == {}
+
+
+def test_tracks_leave_a_duplicate_annotation_out(tmp_path, fake, caplog):
+    root = tmp_path / "root"
+    write_fake_log(root, "d", seed=0)
+    path = root / "d.npz"
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    boxes = json.loads(str(arrays.pop("boxes")))
+    for rows in boxes.values():  # car0 annotates car1 again, 1 cm away
+        twin = dict(rows[0], track_id="car0")
+        twin["centre"] = [rows[0]["centre"][0] + 0.01, *rows[0]["centre"][1:]]
+        rows.append(twin)
+    np.savez(path, boxes=np.array(json.dumps(boxes)), **arrays)
+    with caplog.at_level("WARNING"):
+        assert _run(root, tmp_path / "out") == 0
+    ds = TrackDataset(tmp_path / "out")
+    assert ds.track_ids == ["d_car0"]  # a tie in frames: the smaller id stays
+    assert ds[0].meta["duplicates"] == ["car1"]
+    assert "car1 is a duplicate annotation of car0" in caplog.text
+    assert _run(root, tmp_path / "all", "--keep-duplicates") == 0
+    assert TrackDataset(tmp_path / "all").track_ids == ["d_car0", "d_car1"]
+    assert "duplicates" not in TrackDataset(tmp_path / "all")[0].meta

@@ -24,8 +24,21 @@ visibility            per frame, the dataset's visibility value, or null
 ego_poses             per frame, (4, 4) sensor frame -> log reference frame
                       (absent when the log has no ego motion)
 crop                  the :class:`~seqshape.data.crop.CropConfig` used
+duplicates            absent, or the object ids of the log's duplicate annotations
+                      of this vehicle, left out (:func:`duplicate_objects`)
 reference             absent, or how ``complete`` was made (accumulated reference)
 ====================  ==========================================================
+
+**Duplicate annotations.** Real logs now and then annotate one vehicle twice: two object ids
+whose boxes coincide in every frame (one such pair in the Argoverse 2 development log of
+`../shared/realdata`: centres within 3.3 cm of each other in all 156 annotated sweeps;
+argoverse/argoverse-api issue 40 reports others in Argoverse 1).
+Both would be one vehicle counted twice by ``evaluate`` and labelled twice by ``label``. Two
+boxes of one class whose centres are within :data:`DUPLICATE_DISTANCE` in at least
+:data:`DUPLICATE_SHARE` of the frames they share are one vehicle (two real vehicles cannot be
+that close: their bodies would overlap); the track with more frames is kept (the smaller id on
+a tie), the other left out with a warning and named in the kept track's ``duplicates``.
+``keep_duplicates=True`` keeps every annotation as it is.
 
 Track ids are ``LOG_OBJECT`` (KITTI ``SSSS_TTTT`` as before), with characters that are not
 safe in file names replaced by ``-``.
@@ -67,20 +80,68 @@ class _SweepPlane:
         return self._plane
 
 
+DUPLICATE_DISTANCE = 0.5  # m between two boxes' centres (3D): one vehicle annotated twice
+DUPLICATE_SHARE = 0.9  # of the frames two tracks share, the part where they must coincide
+
+
+def duplicate_objects(boxes_by_frame: Iterable[Iterable]) -> dict[str, str]:
+    """The duplicate annotations among a log's boxes (module doc): ``{dropped id: kept id}``.
+
+    ``boxes_by_frame``: per frame, its :class:`~seqshape.data.sequence.Box3D` boxes. A chain
+    (A duplicates B duplicates C) keeps one of the three."""
+    seen: dict[str, set[int]] = {}
+    near: dict[tuple[str, str], int] = {}
+    for f, boxes in enumerate(boxes_by_frame):
+        boxes = list(boxes)
+        for b in boxes:
+            seen.setdefault(b.track_id, set()).add(f)
+        if len(boxes) < 2:
+            continue
+        centres = np.array([b.centre for b in boxes])
+        d = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+        for i, j in zip(*np.nonzero(np.triu(d < DUPLICATE_DISTANCE, 1)), strict=True):
+            a, b = boxes[i], boxes[j]
+            if a.cls == b.cls and a.track_id != b.track_id:
+                key = tuple(sorted((a.track_id, b.track_id)))
+                near[key] = near.get(key, 0) + 1
+    same = sorted(p for p, k in near.items()
+                  if k >= DUPLICATE_SHARE * len(seen[p[0]] & seen[p[1]]))
+    frames = {t: len(v) for t, v in seen.items()}
+    keep_of: dict[str, str] = {}
+
+    def root(x: str) -> str:
+        while x in keep_of:
+            x = keep_of[x]
+        return x
+
+    for a, b in same:
+        ra, rb = root(a), root(b)
+        if ra == rb:
+            continue
+        kept, dropped = sorted((ra, rb), key=lambda t: (-frames[t], t))
+        keep_of[dropped] = kept
+    return {d: root(d) for d in keep_of}
+
+
 def extract_tracks(log: DrivingLog, classes: Iterable[str] | None = None,
                    crop: CropConfig | None = None, min_points: int = 0,
-                   frames: Iterable[int] | None = None) -> list[Track]:
+                   frames: Iterable[int] | None = None,
+                   keep_duplicates: bool = False) -> list[Track]:
     """The vehicle tracks of ``log`` (module doc).
 
     ``classes``: seqshape vehicle classes to keep (default all); ``min_points``: a track is
     kept when at least one of its frames has that many points after the crop; ``frames``: only
-    these frames of the log (default all).
+    these frames of the log (default all); ``keep_duplicates``: keep a vehicle's duplicate
+    annotations as tracks of their own (module doc, "Duplicate annotations").
     """
     wanted = set(VEHICLE_CLASSES if classes is None else classes)
     crop = crop or CropConfig()
     rows: dict[str, list[tuple]] = {}
+    per_frame = []
     for frame in (log.frames if frames is None else frames):
         boxes = [b for b in log.boxes(frame) if b.cls in wanted]
+        if not keep_duplicates:
+            per_frame.append(boxes)
         if not boxes:
             continue
         sweep = np.asarray(log.points(frame))
@@ -89,10 +150,15 @@ def extract_tracks(log: DrivingLog, classes: Iterable[str] | None = None,
                              sweep_plane=plane.get)
         for b, pts in zip(boxes, cuts, strict=True):
             rows.setdefault(b.track_id, []).append((frame, pts, b))
+    dropped = {} if keep_duplicates else duplicate_objects(per_frame)
+    for d, k in sorted(dropped.items()):
+        _log.warning("%s %s: object %s is a duplicate annotation of %s (box centres within "
+                     "%.1f m in %d %% or more of the frames they share): left out",
+                     log.dataset, log.name, d, k, DUPLICATE_DISTANCE, round(100 * DUPLICATE_SHARE))
     tracks = []
     for oid in sorted(rows):
         r = rows[oid]
-        if max(len(x[1]) for x in r) < min_points:
+        if oid in dropped or max(len(x[1]) for x in r) < min_points:
             continue
         frs = [x[0] for x in r]
         first = r[0][2]
@@ -101,6 +167,9 @@ def extract_tracks(log: DrivingLog, classes: Iterable[str] | None = None,
                 "class": first.cls, "sensor": log.sensor, "frames": frs,
                 "dataset_num_points": [x[2].num_points for x in r],
                 "visibility": [x[2].visibility for x in r], "crop": crop.to_dict()}
+        dups = sorted(d for d, k in dropped.items() if k == oid)
+        if dups:
+            meta["duplicates"] = dups
         ego = [log.ego_pose(f) for f in frs]
         if all(e is not None for e in ego):
             meta["ego_poses"] = [np.asarray(e, dtype=np.float64).tolist() for e in ego]

@@ -41,7 +41,7 @@ _log = logging.getLogger(__name__)
 
 CONFIG_FILE = "tracks.json"
 LOGS_DIR = "logs"
-EXTRACTOR_VERSION = 1
+EXTRACTOR_VERSION = 2  # 2: duplicate annotations left out (keep_duplicates)
 SPLITS = ("train", "val")
 SPLIT_BY = ("log", "track")
 
@@ -70,6 +70,9 @@ class TracksConfig:
     split_by: what val_fraction splits: whole logs ('log': no vehicle is in both splits, nor
         any log) or single tracks ('track': to fine-tune and evaluate on held-out vehicles of
         the same logs).
+    keep_duplicates: keep a vehicle's duplicate annotations (two object ids whose boxes
+        coincide) as tracks of their own instead of leaving all but one out
+        (seqshape.data.extract, "Duplicate annotations").
     """
 
     dataset: str
@@ -83,6 +86,7 @@ class TracksConfig:
     val_fraction: float = 0.2
     split: str | None = None
     split_by: str = "log"
+    keep_duplicates: bool = False
 
     def validate(self) -> None:
         if self.min_points < 0:
@@ -234,7 +238,8 @@ def extract_log(job: LogJob) -> LogResult:
 def _extract_log(job: LogJob, t0: float) -> LogResult:
     cfg, out = job.config, Path(job.out)
     log = _open(job.reader, cfg.root, job.log)
-    tracks = extract_tracks(log, cfg.classes, cfg.crop(), cfg.min_points)
+    tracks = extract_tracks(log, cfg.classes, cfg.crop(), cfg.min_points,
+                            keep_duplicates=cfg.keep_duplicates)
     split = log_split(cfg.dataset, job.log, cfg.val_fraction, cfg.split)
     entries, warnings, no_ref = [], [], []
     for tr in tracks:

@@ -29,7 +29,7 @@ from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 HELP = ("extract vehicle tracks from real driving logs (KITTI, Argoverse 2, nuScenes) as a "
         "track dataset")
 FIELDS = ["min_points", "margin", "ground", "reference", "reference_points", "val_fraction",
-          "split_by", "split"]
+          "split_by", "split", "keep_duplicates"]
 _MOVED = ("CONFIG_FILE", "LOGS_DIR", "EXTRACTOR_VERSION", "SPLITS", "SPLIT_BY", "TracksConfig",
           "log_split", "marker_path", "parse_sequences", "select_logs", "read_marker", "LogJob",
           "LogResult", "extract_log", "run_jobs", "TracksSummary", "extract_dataset",
