@@ -9,7 +9,10 @@ reference and its one-way reference->estimate half, and the share of each frame'
 outside the box on the sensor's side and beyond it, for the estimate and for the annotation
 (the annotation's share behind its box tells whether it encloses the cars' own points; the
 estimates' shares compare the methods, docs/evaluation.md); cars and larger vehicles separately, and
-the centre error by points per frame. With ``--finetune-steps N`` it also fine-tunes the
+the centre error by points per frame. The rows "box fits its points" and "box off its points"
+split the frames by whether the annotated box's faces seen head-on lie within 0.15 m of the
+frame's points (``ref_face_gap_m``, docs/evaluation.md): on the second kind every method is
+scored against a box that does not hold its own vehicle. With ``--finetune-steps N`` it also fine-tunes the
 sequential model on the logs' own references (``seqshape train --init pretrained``, stage 3
 only) and prints the same tables after, on held-out vehicles (``--split-by track``) and on all.
 
@@ -71,7 +74,8 @@ def evaluate(data: Path, out: Path, checkpoint: str, split: str,
 def tables(metrics: dict, title: str) -> None:
     print(f"\n### {title}\n")
     b = metrics["breakdown"]
-    groups = [("all", b["all"]["all"])] + sorted(b["class_group"].items())
+    groups = ([("all", b["all"]["all"])] + sorted(b["class_group"].items())
+              + list(b.get("annotation", {}).items()))
     rows = []
     for name, g in groups:
         for m in METHODS:

@@ -51,6 +51,7 @@ import numpy as np
 from _bench import print_table
 
 from seqshape.data.dataset import TrackDataset
+from seqshape.evaluation.runner import face_gaps as face_gaps_of
 from seqshape.geometry import sensor_to_canonical
 from seqshape.sim.trajectories import PLACEMENTS, sample_trajectory, view_angle
 
@@ -73,8 +74,7 @@ def frame_layout(points: np.ndarray, pose: np.ndarray, size: np.ndarray) -> dict
     radial = -(q[:, :2] @ view) / reach
     z = (q[:, 2] + size[2] / 2) / size[2]
     # per box axis, the gap of the face seen within 60 degrees (NaN: that face is not)
-    face_gaps = [half[a] - np.quantile(q[:, a] * np.sign(view[a]), 0.98)
-                 if abs(view[a]) >= 0.5 else float("nan") for a in (0, 1)]
+    face_gaps = face_gaps_of(points, pose, size).tolist()
     outside = (np.abs(q[:, 0]) > half[0]) | (np.abs(q[:, 1]) > half[1])
     return {"far": float(np.mean(radial > 0)), "top": float(np.mean(z > 0.7)),
             "beyond": float(np.mean(outside & (radial > 0))),

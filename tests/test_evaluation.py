@@ -576,3 +576,56 @@ def test_outside_shares_by_hand():
 
     fit = type("Fit", (), {"pose": pose, "size": np.array([4.0, 2.0, 1.5])})()
     np.testing.assert_allclose(np.concatenate(footprint(fit)), [-2, -1, 2, 1])
+
+
+def test_face_gaps_by_hand():
+    from seqshape.evaluation.runner import face_gaps
+
+    # a 4 x 2 m box at (10, 0) facing +x, the sensor at the origin: it sees the tail (x = 8)
+    # head-on and no side; 100 points on a plane 0.3 m behind that face, then on the face
+    size = np.array([4.0, 2.0, 1.5])
+    pose = np.array([10.0, 0.0, -1.0, 0.0])
+    y = np.linspace(-0.9, 0.9, 100)
+    behind = np.c_[np.full(100, 8.3), y, np.full(100, -1.0)]
+    g = face_gaps(behind, pose, size)
+    assert g[0] == pytest.approx(0.3) and np.isnan(g[1])
+    assert face_gaps(behind - [0.3, 0, 0], pose, size)[0] == pytest.approx(0.0, abs=1e-12)
+    # points beyond the face (a box too small or displaced away): a negative gap
+    assert face_gaps(behind - [0.5, 0, 0], pose, size)[0] == pytest.approx(-0.2)
+    # heading toward the sensor: the nose is the face seen, the same numbers
+    assert face_gaps(behind, pose + [0, 0, 0, np.pi], size)[0] == pytest.approx(0.3)
+    # at 45 degrees two faces are seen, each gap measured along its own axis: the box at
+    # (10, 10) heading -y sees the sensor at (0.71, -0.71) in its frame (nose and right side)
+    diag = np.array([10.0, 10.0, -1.0, -np.pi / 2])
+    c, s = np.cos(diag[3]), np.sin(diag[3])
+    local = np.array([[x, yy] for x in np.linspace(-2.0, 1.8, 39)
+                      for yy in np.linspace(-0.7, 0.9, 17)])  # 0.2 m short of the nose,
+    pts = np.c_[local @ np.array([[c, s], [-s, c]]) + diag[:2], np.full(len(local), -1.0)]
+    g = face_gaps(pts, diag, size)  # ... 0.3 m short of the right side
+    want = [2.0 - np.quantile(local[:, 0], 0.98), 1.0 - np.quantile(-local[:, 1], 0.98)]
+    np.testing.assert_allclose(g, want, atol=1e-9)
+    assert 0.19 < g[0] < 0.21 and 0.29 < g[1] < 0.31
+
+
+def test_annotation_breakdown_splits_boxes_off_their_points():
+    from seqshape.evaluation.report import summarize
+
+    good = make_real_track(0, "car", SIZE, reference=False)
+    # the same points under a box moved 0.5 m toward the sensor: it no longer holds them
+    poses = good.poses.copy()
+    poses[:, :2] -= 0.5 * poses[:, :2] / np.linalg.norm(poses[:, :2], axis=1, keepdims=True)
+    bad = Track("log0_car9", good.points, poses, None, good.size, good.timestamps,
+                dict(good.meta))
+    tracks = {t.track_id: t for t in (good, bad)}
+    res = evaluate_tracks({"sequential": Flipper(tracks)}, [good, bad], emd_every=0, workers=0)
+    rec = res.of("sequential")
+    gap, n = rec["ref_face_gap_m"], rec["n_points"]
+    assert np.isnan(gap[n < 10]).all() and np.isfinite(gap[n >= 10]).all()
+    is_bad = rec["track_id"] == "log0_car9"
+    assert np.all(gap[~is_bad & (n >= 10)] < 0.05)  # points on the faces the sensor sees
+    assert np.all(gap[is_bad & (n >= 10)] > 0.3)  # about 0.5 m along the line of sight
+    groups = summarize(res)["breakdown"]["annotation"]
+    fits, off = "box fits its points (<= 0.15 m)", "box off its points (> 0.15 m)"
+    assert groups[fits]["sequential"]["n_frames"] == int(np.sum(~is_bad & (n >= 10)))
+    assert groups[off]["sequential"]["n_frames"] == int(np.sum(is_bad & (n >= 10)))
+    assert groups[fits]["sequential"]["centre_cm_median"] == pytest.approx(0.0, abs=1e-6)

@@ -31,10 +31,12 @@ that have both, each track weighing the same: :func:`late_over_first`). ``metric
 the flips per track under the table and a table of errors by detections so far.
 
 Real data (``settings["real"]``: a track's meta says ``source: "real"``): ``metrics.json`` gains
-``"breakdown"``: ``{"all" | "class_group" | "class" | "distance" | "points": {group: {method:
-stats}}}`` with :data:`BREAKDOWN_STATS` (medians and means, cm / deg / %) per group: all frames,
-car vs larger vehicles (van, truck, bus, trailer), each class, distance bins
-:data:`DISTANCE_BINS` (m) and points-per-frame bins :data:`POINT_BINS`. ``metrics.md`` labels
+``"breakdown"``: ``{"all" | "class_group" | "class" | "distance" | "points" | "annotation":
+{group: {method: stats}}}`` with :data:`BREAKDOWN_STATS` (medians and means, cm / deg / %) per
+group: all frames, car vs larger vehicles (van, truck, bus, trailer), each class, distance bins
+:data:`DISTANCE_BINS` (m), points-per-frame bins :data:`POINT_BINS`, and whether the annotated
+box holds the frame's points (``ref_face_gap_m`` at most :data:`BOX_FITS_M`: "box fits its
+points", else "box off its points"; frames too sparse to tell are in neither). ``metrics.md`` labels
 the CD "CD vs accumulated reference", leaves out the paper's rows (synthetic data) and adds the
 breakdown tables (medians, then means).
 """
@@ -265,6 +267,11 @@ def _bin_labels(edges: tuple, unit: str, integer: bool) -> list[str]:
 DETECTION_LABELS = tuple(_bin_labels(DETECTION_BINS, "", True))
 
 
+#: A box whose faces seen head-on lie at most this far in front of the frame's points (m)
+#: "fits its points" (the synthetic traffic set's median face gap is 0.04 m).
+BOX_FITS_M = 0.15
+
+
 def frame_groups(rec: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
     """Boolean masks of the breakdown groups (module doc) over one method's records; empty
     groups are left out."""
@@ -280,6 +287,11 @@ def frame_groups(rec: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]
         which = np.digitize(rec[col], edges) - 1
         groups[name] = {lab: which == i
                         for i, lab in enumerate(_bin_labels(edges, unit, integer))}
+    if "ref_face_gap_m" in rec:
+        gap = np.asarray(rec["ref_face_gap_m"], dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            groups["annotation"] = {f"box fits its points (<= {BOX_FITS_M:g} m)": gap <= BOX_FITS_M,
+                                    f"box off its points (> {BOX_FITS_M:g} m)": gap > BOX_FITS_M}
     return {k: {g: m for g, m in v.items() if m.any()} for k, v in groups.items()}
 
 
@@ -409,7 +421,8 @@ def _real_notes(settings: dict[str, Any], methods: list[str]) -> list[str]:
 BREAKDOWN_TITLES = {"all": "All frames",
                     "class_group": "Cars vs larger vehicles",
                     "class": "By class", "distance": "By distance from the sensor",
-                    "points": "By points per frame"}
+                    "points": "By points per frame",
+                    "annotation": "By whether the annotated box holds the frame's points"}
 _BD_COLUMNS = (("frames", "n_frames", None), ("centre", "centre_cm", 1),
                ("radial", "radial_cm", 1), ("\\|tang\\|", "tangential_abs_cm", 1),
                ("yaw", "rot_deg", 1), ("yaw w/o flips", "rot_deg_without_flips", 1),
