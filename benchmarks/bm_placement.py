@@ -28,7 +28,7 @@ from _bench import print_table
 
 from seqshape.data import TrackDataset
 from seqshape.evaluation import evaluate_tracks
-from seqshape.evaluation.report import BOX_FITS_M, FLIP_DEG
+from seqshape.evaluation.report import BOX_FITS_M, FLIP_DEG, LARGER
 from seqshape.model.estimator import Estimator
 
 
@@ -95,8 +95,11 @@ def main() -> int:
     res = evaluate_tracks(ests, ds, max_tracks=args.max_tracks, emd_every=0, workers=0)
     rec = res.records
     gap = rec.get("ref_face_gap_m", np.full(len(rec["method"]), np.nan))
-    groups = {"car": rec["class"] == "car", "larger": rec["class"] != "car"}
-    if np.isfinite(gap).any() and str(rec["class"][0]):  # real tracks: the annotation's fit
+    cls = rec["class"]
+    groups = {"all": np.ones(len(cls), bool)}
+    if (cls != "").any():  # real or classed tracks: cars and larger vehicles apart
+        groups.update(car=cls == "car", larger=np.isin(cls, LARGER))
+    if np.isfinite(gap).any() and (cls != "").any():  # real tracks: the annotation's fit
         groups[f"box fits its points (<= {BOX_FITS_M:g} m)"] = gap <= BOX_FITS_M
         groups[f"box off its points (> {BOX_FITS_M:g} m)"] = gap > BOX_FITS_M
     rows = []
