@@ -30,9 +30,9 @@ reference             absent, or how ``complete`` was made (accumulated referenc
 ====================  ==========================================================
 
 **Duplicate annotations.** Real logs now and then annotate one vehicle twice: two object ids
-whose boxes coincide in every frame (one such pair in the Argoverse 2 development log of
-`../shared/realdata`: centres within 3.3 cm of each other in all 156 annotated sweeps;
-argoverse/argoverse-api issue 40 reports others in Argoverse 1).
+whose boxes coincide in every frame (one such pair in Argoverse 2 log
+7fab2350-7eaf-3b7e-a39d-6937a4c1bede: centres within 3.3 cm of each other in all 156 annotated
+sweeps; argoverse/argoverse-api issue 40 reports others in Argoverse 1).
 Both would be one vehicle counted twice by ``evaluate`` and labelled twice by ``label``. Two
 boxes of one class whose centres are within :data:`DUPLICATE_DISTANCE` in at least
 :data:`DUPLICATE_SHARE` of the frames they share are one vehicle (two real vehicles cannot be
