@@ -28,7 +28,7 @@ from _bench import print_table
 
 from seqshape.data import TrackDataset
 from seqshape.evaluation import evaluate_tracks
-from seqshape.evaluation.report import BOX_FITS_M, FLIP_DEG, LARGER
+from seqshape.evaluation.report import FLIP_DEG, frame_groups
 from seqshape.model.estimator import Estimator
 
 
@@ -94,14 +94,13 @@ def main() -> int:
         ests[f"{kind} + step"] = Contained.from_pretrained(kind, threads=args.threads, **extra)
     res = evaluate_tracks(ests, ds, max_tracks=args.max_tracks, emd_every=0, workers=0)
     rec = res.records
-    gap = rec.get("ref_face_gap_m", np.full(len(rec["method"]), np.nan))
-    cls = rec["class"]
-    groups = {"all": np.ones(len(cls), bool)}
-    if (cls != "").any():  # real or classed tracks: cars and larger vehicles apart
-        groups.update(car=cls == "car", larger=np.isin(cls, LARGER))
-    if np.isfinite(gap).any() and (cls != "").any():  # real tracks: the annotation's fit
-        groups[f"box fits its points (<= {BOX_FITS_M:g} m)"] = gap <= BOX_FITS_M
-        groups[f"box off its points (> {BOX_FITS_M:g} m)"] = gap > BOX_FITS_M
+    # the evaluation report's own groups (all frames; on classed, real tracks also cars and
+    # larger vehicles, and whether the annotated box holds the frame's points)
+    found = frame_groups(rec)
+    groups = dict(found["all"])
+    if (rec["class"] != "").any():
+        groups.update({k: v for k, v in found["class_group"].items() if k != "unknown class"})
+        groups.update(found.get("annotation", {}))
     rows = []
     for group, sel in groups.items():
         for method in ests:
