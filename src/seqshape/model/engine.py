@@ -22,9 +22,13 @@ Backends (:data:`BACKENDS`), each tested against the PyTorch reference (the mode
   ONNX Runtime (optional extra ``seqshape[fast]``); float32, within 1e-4 m of the reference.
 * ``"torch-lean"``: :class:`StepGraph` run by PyTorch in float32 (the reference's arithmetic
   without its module and masking overhead).
-* ``"onnx-int8"``: ``"onnx"`` with the shape decoder's weights in int8 (ONNX Runtime's dynamic
-  quantisation, :func:`quantize_onnx`); the pose stays float32, shape points within 6 cm
-  (:data:`INT8_TOLERANCE`); paper-val metrics within 0.3 % of the reference.
+* ``"onnx-int8"``: ``"onnx"`` with int8 weights (ONNX Runtime's dynamic quantisation,
+  :func:`quantize_onnx`): in passes of many tracks the shape decoder's and the encoder's last
+  per-point layers (:data:`INT8_STEP_LAYERS`; 1.7-1.9x the throughput), estimates held to the
+  reference by distribution (:data:`INT8_NOISE`: no further off than 1 cm of noise on the
+  points would move them); a track alone the shape decoder's only (:data:`INT8_LAYERS`: the
+  pose float32, shape points within 6 cm, :data:`INT8_TOLERANCE`); paper-val metrics within
+  0.3 % of the reference.
 
 ``"auto"`` (:func:`select_backend`) takes the first of :data:`AUTO_ORDER` whose runtime is
 installed and whose outputs match the reference on this machine
@@ -51,6 +55,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from seqshape.errors import ConfigError, MissingDependencyError, require
+from seqshape.geometry import box_surface
 from seqshape.model.graph_cache import cached_graph
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet, motion_features
 from seqshape.model.transforms import place_points
@@ -86,6 +91,12 @@ SPARE_CHECK_PERIOD = 0.1
 #: encoder, the GRU or the pose decoder as well turns some tracks' yaws by tens of degrees
 #: (docs/model.md, "Inference backends (issue 17)").
 INT8_LAYERS = ("shape_decoder",)
+#: The same for the batched step graph (:class:`StepGraph`), the one of many-track passes:
+#: also the encoder's per-point layers after the split one (``mlp2_rest``; 61 % of the
+#: encoder's multiply-adds with the ``small`` preset), 1.5-1.9x the float32 throughput of 100
+#: live tracks. Every per-point product of the encoder would add 3 % more and move yaws twice
+#: as far (docs/model.md, "Fifth round: the encoder in int8").
+INT8_STEP_LAYERS = ("shape_decoder", "mlp2_rest")
 #: ONNX opset of the export.
 ONNX_OPSET = 17
 #: Agreement of a fast backend with the reference: shape points (m), pose centre (m), yaw
@@ -95,13 +106,26 @@ ONNX_OPSET = 17
 #: itself, batched against track by track, differs by up to 0.2 mm, 0.01 mm, 7e-5 rad (the
 #: yaw of a nearly degenerate (cos, sin) output moves most; the shape follows it).
 TOLERANCE = (2e-3, 2e-4, 1e-3)
-#: The same for ``"onnx-int8"``: its pose is float32 (the tolerance above), its shape points
-#: move by the int8 rounding of the shape decoder's weights and inputs: measured on the shipped
-#: (round 9) weights, 40 real-looking tracks over 4 steps, the worst point of an estimate up to
-#: 32 mm (sequential) and 46 mm (baseline), median 10 and 12 mm (on the round-6 weights up to
-#: 14 mm; it depends on the other tracks of the pass, whose range sets the inputs'
-#: quantisation); a wrong scale or zero point of the quantisation moves them by decimetres.
+#: The same for ``"onnx-int8"``'s one-track graph (:class:`OneTrackGraph`, the shape decoder
+#: alone in int8): its pose is float32 (the tolerance above), its shape points move by the
+#: int8 rounding of the shape decoder's weights and inputs: measured on the shipped (round 9)
+#: weights, 40 real-looking tracks over 4 steps, the worst point of an estimate up to 32 mm
+#: (sequential) and 46 mm (baseline), median 10 and 12 mm; a wrong scale or zero point of the
+#: quantisation moves them by decimetres. Its batched graph is held to :data:`INT8_NOISE`.
 INT8_TOLERANCE = (6e-2, TOLERANCE[1], TOLERANCE[2])
+#: ``"onnx-int8"``'s batched graph also runs the encoder's last per-point layers in int8
+#: (:data:`INT8_STEP_LAYERS`), with the inputs quantised per pass over all its tracks: that
+#: moves an estimate about as far as 5 mm of Gaussian noise on its points would (less than a
+#: LiDAR's range noise, 2-3 cm), and sometimes a yaw the network is unsure of by degrees, so it
+#: is held to the reference by distribution, not estimate by estimate: over
+#: :func:`car_stream`, the median and 90th percentile of its estimates' deviations from the
+#: reference's (worst shape point, centre, yaw) must not exceed those of the reference's own
+#: estimates with this much Gaussian noise (m) on the points
+#: (:func:`seqshape.model.estimator.noise_quantiles`). Measured with the shipped weights, 40
+#: tracks over 4 steps (p90, int8 against 1 cm noise): shape 16 / 43 cm, centre 0.7 / 3.5 cm,
+#: yaw 1.5 / 5.5 degrees (sequential); paper-val metrics within 0.3 % (docs/model.md, "Fifth
+#: round: the encoder in int8"). A wrong scale or zero point moves every estimate by decimetres.
+INT8_NOISE = 0.01
 
 
 def split_first_layer(first: nn.Linear, c: int) -> tuple[torch.Tensor, ...]:
@@ -329,6 +353,7 @@ class TorchGraphEngine:
 
     name = "torch-lean"
     tolerance = TOLERANCE
+    noise: float | None = None  # a statistical check instead (:data:`INT8_NOISE`)
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         self.threads = threads or 1
@@ -373,6 +398,8 @@ class OnnxEngine:
     name = "onnx"
     #: (shape, centre, yaw) agreement with the reference (:data:`TOLERANCE`).
     tolerance = TOLERANCE
+    #: Not None: held to the reference by distribution as well (:data:`INT8_NOISE`).
+    noise: float | None = None
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         ort = require("onnxruntime", "the ONNX inference backend", "seqshape[fast]")
@@ -453,10 +480,11 @@ class OnnxInt8Engine(OnnxEngine):
 
     name = "onnx-int8"
     tolerance = INT8_TOLERANCE
+    noise = INT8_NOISE
 
     def graph_bytes(self, model: ShapePoseNet) -> bytes:
-        return cached_graph(model, f"step-int8:{','.join(INT8_LAYERS)}",
-                            lambda: quantize_onnx(export_onnx(model), INT8_LAYERS))
+        return cached_graph(model, f"step-int8:{','.join(INT8_STEP_LAYERS)}",
+                            lambda: quantize_onnx(export_onnx(model), INT8_STEP_LAYERS))
 
     def one_graph_bytes(self, model: ShapePoseNet) -> bytes:
         return cached_graph(model, f"one-int8:{','.join(INT8_LAYERS)}",
@@ -657,6 +685,30 @@ def check_stream(num_points: int, seed: int = 0) -> list[dict]:
                       "point_lists": [cloud(n, 8.0 + 4 * i + 0.3 * t) for i, n in enumerate(row)],
                       "timestamps": [0.1 * t, None, 0.1 * t + 0.05],
                       "sizes": [None, None, (12.0, 2.5, 3.2)]})
+    return steps
+
+
+def car_stream(num_points: int, seed: int = 0, n_tracks: int = 40,
+               n_steps: int = 4) -> list[dict]:
+    """Steps of ``n_tracks`` moving tracks of partial car views (the half of a car-sized box
+    surface nearer the sensor, N/4 to 2N points, 0.8 m a step, timestamps 0.1 s apart), so
+    that a pass splits into point-count groups: the stream of the statistical check of
+    ``"onnx-int8"`` (:data:`INT8_NOISE`)."""
+    rng = np.random.default_rng(seed)
+    starts = rng.uniform(6, 30, size=(n_tracks, 2)) * rng.choice([-1, 1], size=(n_tracks, 2))
+    yaws = rng.uniform(-np.pi, np.pi, size=n_tracks)
+    ids = [f"car{i}" for i in range(n_tracks)]
+    steps = []
+    for t in range(n_steps):
+        clouds = []
+        for i in range(n_tracks):
+            n = int(rng.integers(max(2, num_points // 4), 2 * num_points + 1))
+            xy = starts[i] + 0.8 * t * np.array([np.cos(yaws[i]), np.sin(yaws[i])])
+            pts = box_surface(2 * n + 2, rng, pose=(*xy, -0.9, yaws[i]), dtype=np.float32)
+            near = np.linalg.norm(pts[:, :2], axis=1) <= np.linalg.norm(xy)
+            clouds.append(pts[near][:n])
+        steps.append({"track_ids": ids, "point_lists": clouds,
+                      "timestamps": [0.1 * t] * n_tracks})
     return steps
 
 
