@@ -151,3 +151,26 @@ def test_markdown_table_by_detections():
     row = next(line for line in md.splitlines() if line.startswith("| moving | sequential |"))
     cells = [c.strip() for c in row.split("|")]
     assert cells[3] == "1 / 4" and cells[-3:-1] == ["n/a", "n/a"]
+
+
+def test_late_over_first_above_the_cd_floor():
+    """The CD ratio above each track's CD floor, by hand: a moving track whose CD falls from
+    40 to 20 cm over a 15 cm floor (ratio 5/25 = 0.2, against 0.5 for the raw CD), and a parked
+    one at 30 cm over a 10 cm floor (1.0)."""
+    from seqshape.evaluation.report import with_floor
+    from seqshape.evaluation.runner import EvalResult
+
+    n = list(range(1, 21))
+    rec = _records({"m": (n, [10.0 + 0.5 * k for k in n], [0.4] + [0.3] * 15 + [0.2] * 4),
+                    "p": (n, [20.0] * 20, [0.3] * 20)})
+    rec["method"] = np.array(["sequential"] * len(rec["cd_m"]))
+    floors = {"track_id": np.array(["m", "p"]), "floor_m": np.array([0.15, 0.10]),
+              "n_pred": np.array([1024, 1024]), "method": np.array(["split", "split"])}
+    result = EvalResult(rec, floors, {"n_pred_points": {"sequential": 1024}})
+    above = with_floor(result, "sequential")
+    np.testing.assert_allclose(above["cd_above_floor_m"][rec["track_id"] == "m"],
+                               rec["cd_m"][rec["track_id"] == "m"] - 0.15)
+    _, ratio = detection_summary(above)
+    assert ratio["moving"]["cd"] == pytest.approx(0.5)
+    assert ratio["moving"]["cd_above_floor"] == pytest.approx(0.05 / 0.25)
+    assert ratio["parked"]["cd_above_floor"] == pytest.approx(1.0)

@@ -116,6 +116,11 @@ def test_runner_oracle_scores_floor_and_zero_pose_error(dataset):
     ref = np.mean([earth_movers_distance(box_surface(256, s), box_surface(256, s + 50))
                    for s in range(6)])
     assert np.mean(rec["emd_m"][has_emd]) == pytest.approx(ref, rel=0.15)
+    # ... which is the EMD floor: per track, two halves of its stored sampling
+    emd_floor = np.average(res.floors["emd_floor_m"])
+    assert np.isfinite(res.floors["emd_floor_m"]).all()
+    assert emd_floor == pytest.approx(ref, rel=0.15)
+    assert np.mean(rec["emd_m"][has_emd]) == pytest.approx(emd_floor, rel=0.15)
 
 
 def test_runner_records_detections_points_and_distance(dataset):
@@ -198,10 +203,24 @@ def test_report_files_plots_and_html(dataset, tmp_path):
     assert data["baseline"]["rot_deg"] == pytest.approx(
         np.degrees(np.mean(res.of("baseline")["rot_rad"])))
     assert data["cd_floor_cm"] == pytest.approx(data["sequential"]["cd_cm"], rel=0.05)
+    assert isinstance(data["emd_floor_m"], float)
+    floors = data["floor"]["per_method"]
+    gains = data["above_floor"]
+
+    def by_hand(key, floor_key):
+        s, b = data["sequential"][key], data["baseline"][key]
+        fs, fb = floors["sequential"][floor_key], floors["baseline"][floor_key]
+        return 100 * ((s - fs) - (b - fb)) / (b - fb)
+
+    assert gains["cd_pct"] == pytest.approx(by_hand("cd_cm", "cd_floor_cm"))
+    assert gains["emd_pct"] == pytest.approx(by_hand("emd_m", "emd_floor_m"))
+    assert gains["trans_pct"] == pytest.approx(
+        100 * (data["sequential"]["trans_cm"] / data["baseline"]["trans_cm"] - 1))
+    assert gains["cd_pct"] < 0 and gains["trans_pct"] < 0  # less pose noise: better
     assert summary["paper"] == PAPER_TABLE
     md = (tmp_path / "metrics.md").read_text()
     assert "| sequential (paper) | 2.30 | 0.250 | 9.40 | 12.00 |" in md
-    assert "CD floor" in md
+    assert "CD floor" in md and "EMD floor" in md and "EMD above its floor" in md
     lines = (tmp_path / "per_frame.csv").read_text().splitlines()
     assert lines[0].split(",") == list(FIELDS) and len(lines) == len(res.records["frame"]) + 1
     for png in write_plots(tmp_path, res):
@@ -629,3 +648,18 @@ def test_annotation_breakdown_splits_boxes_off_their_points():
     assert groups[fits]["sequential"]["n_frames"] == int(np.sum(~is_bad & (n >= 10)))
     assert groups[off]["sequential"]["n_frames"] == int(np.sum(is_bad & (n >= 10)))
     assert groups[fits]["sequential"]["centre_cm_median"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_no_emd_no_emd_floor(dataset):
+    """Without EMD (``emd_every=0``) no EMD floor is computed and the above-floor EMD change is
+    null, while the CD's is still there."""
+    from seqshape.evaluation.report import summarize
+
+    tracks = list(dataset.split("val"))[:2]
+    ests = {"sequential": OracleEstimator(tracks, pose_noise=0.01, seed=1),
+            "baseline": OracleEstimator(tracks, pose_noise=0.1, seed=2)}
+    res = evaluate_tracks(ests, tracks, emd_every=0, workers=0)
+    assert np.isnan(res.floors["emd_floor_m"]).all()
+    out = summarize(res)
+    assert out["emd_floor_m"] is None
+    assert out["above_floor"]["emd_pct"] is None and out["above_floor"]["cd_pct"] is not None

@@ -11,6 +11,9 @@ from seqshape.evaluation.metrics import (
     cd_floor,
     chamfer_distance,
     earth_movers_distance,
+    emd_floor,
+    emd_floor_pair,
+    emd_sampling_law,
     emd_subsampled,
     nearest_distances,
     pose_errors,
@@ -140,3 +143,41 @@ def test_cd_floor_split_estimate_matches_true_resampling(m, k):
     est = np.mean([cd_floor(gt, k, seed=s)[0] for s in range(4)])
     assert cd_floor(gt, k)[1] == "split"
     assert est == pytest.approx(truth, rel=0.06)
+
+
+def test_emd_sampling_law_predicts_smaller_samplings():
+    """EMD of two independent n-point samplings of a car-sized box, 128-512 points, predicted
+    from the 1024-point one by sqrt(log n / n) (measured within 9 %)."""
+    def emd(n):
+        return np.mean([earth_movers_distance(box_surface(n, s), box_surface(n, s + 100))
+                        for s in range(3)])
+
+    ref = emd(1024)
+    for n in (128, 256, 512):
+        assert emd(n) == pytest.approx(ref * emd_sampling_law(n) / emd_sampling_law(1024),
+                                       rel=0.12)
+    assert emd_sampling_law(1024) < emd_sampling_law(512)
+
+
+def test_emd_floor_resample_is_exact_definition():
+    gt = box_surface(2048, 0)
+    floor, method = emd_floor(gt, 256, seed=3, resample=lambda n, s: box_surface(n, s))
+    a, b, factor, how = emd_floor_pair(gt, 256, seed=3, resample=lambda n, s: box_surface(n, s))
+    assert method == how == "resample" and factor == 1.0 and len(a) == len(b) == 256
+    assert floor == pytest.approx(earth_movers_distance(a, b))
+    np.testing.assert_array_equal(a, box_surface(256, int(np.random.default_rng(3).integers(
+        0, 2**31, size=2)[0])))
+
+
+@pytest.mark.parametrize("m,n", [(2048, 512), (512, 512)])
+def test_emd_floor_split_estimate_matches_true_resampling(m, n):
+    """Two halves of the stored points: exact in distribution when M >= 2n, else rescaled by
+    the sampling law (512 stored points, halves of 256, for a 512-point EMD)."""
+    gt = box_surface(m, 0)
+    truth = np.mean([earth_movers_distance(box_surface(n, s), box_surface(n, s + 50))
+                     for s in range(1, 4)])
+    est = np.mean([emd_floor(gt, n, seed=s)[0] for s in range(3)])
+    assert emd_floor(gt, n)[1] == "split"
+    assert est == pytest.approx(truth, rel=0.12)
+    with pytest.raises(ValueError, match="too few"):
+        emd_floor(gt[:6], n)

@@ -170,7 +170,19 @@ def floor_note(summary: dict[str, Any]) -> str:
             f"many as an estimate, against the stored ground truth): {value:.2f} cm. A "
             f"perfect estimate "
             f"scores this, so the paper's {PAPER_TABLE['sequential']['cd_cm']:.1f} cm cannot "
-            f"be reached at this sampling: compare the CD above the floor.\n")
+            f"be reached at this sampling: compare the CD above the floor.{_emd_floor_text(summary)}\n")
+
+
+def _emd_floor_text(summary: dict[str, Any]) -> str:
+    """The EMD floor's sentence of :func:`floor_note` (empty without EMD)."""
+    value = summary.get("emd_floor_m")
+    if value is None:
+        return ""
+    gain = summary.get("above_floor", {}).get("emd_pct")
+    change = "" if gain is None else (f"; above it the sequential model's EMD is {abs(gain):.0f} % "
+                                      f"{'below' if gain < 0 else 'above'} the baseline's")
+    return (f" EMD floor, the same two samplings' EMD at the EMD's subsample size: "
+            f"{value:.3f} m{change}.")
 
 
 def _ratio_text(method: str, r: dict[str, float | None]) -> str | None:

@@ -3,13 +3,17 @@
 Averaging: every metric is the mean over all scored frames of all tracks pooled together (a
 long track weighs more than a short one), skipping frames where it is undefined (EMD on frames
 not sampled by ``emd_every``, unknown poses). The CD floor is averaged the same way: each
-track's floor weighted by its number of frames with a CD.
+track's floor weighted by its number of frames with a CD; the EMD floor (``emd_floor_m``, null
+without EMD) by its frames with an EMD. ``"above_floor"`` compares the sequential model with
+the baseline on the parts of their CD and EMD above the floors (issue 19):
+``{"cd_pct", "emd_pct", "emd_raw_pct", "trans_pct", "rot_pct"}``, the change in % (negative:
+the sequential model is better), or absent without both methods.
 
 ``metrics.json``::
 
     {"sequential": {"cd_cm", "emd_m", "trans_cm", "rot_deg"},
      "baseline":   {"cd_cm", "emd_m", "trans_cm", "rot_deg"},
-     "cd_floor_cm": float,
+     "cd_floor_cm": float, "emd_floor_m": float | null, "above_floor": {...},
      "details": {method: {medians, per-track means, frame counts, "shape_cd_cm",
                           180-degree flips: "rot_flip_frames", "rot_flip_tracks",
                           "rot_deg_without_flips"}},
@@ -26,8 +30,9 @@ of tracks with any flip, median over tracks of each track's flipped share), ``"b
 (``{"all" | "moving" | "parked": {"1" | "2-4" | "5-8" | "9-16" | "17+": {n_frames, n_tracks,
 cd_cm, trans_cm, rot_deg, flip_pct}}}``, frame-pooled means; parked: the true distance from the
 sensor spans less than :data:`PARKED_SPREAD_M`) and ``"late_over_first"`` (``{group: {"cd",
-"trans"}}``: the error at 17+ detections over the error at the first detection, over the tracks
-that have both, each track weighing the same: :func:`late_over_first`). ``metrics.md`` prints
+"trans", "cd_above_floor"}}``: the error at 17+ detections over the error at the first
+detection, over the tracks that have both, each track weighing the same: :func:`late_over_first`;
+the last of the CD minus the track's CD floor). ``metrics.md`` prints
 the flips per track under the table and a table of errors by detections so far.
 
 Real data (``settings["real"]``: a track's meta says ``source: "real"``): ``metrics.json`` gains
@@ -172,14 +177,32 @@ def motion_groups(rec: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return {g: m for g, m in groups.items() if m.any()}
 
 
+#: The 17+ over first-detection ratios (:func:`detection_summary`): name -> record column;
+#: ``cd_above_floor_m`` (the CD minus the track's CD floor) is added by :func:`summarize`.
+RATIO_COLUMNS = (("cd", "cd_m"), ("trans", "trans_m"), ("cd_above_floor", "cd_above_floor_m"))
+
+
+def with_floor(result: EvalResult, method: str) -> dict[str, np.ndarray]:
+    """``method``'s records with ``cd_above_floor_m``: each frame's CD minus its track's CD
+    floor at the method's point count (NaN where the track has none)."""
+    rec = result.of(method)
+    k = result.settings.get("n_pred_points", {}).get(method)
+    fl = result.floors
+    sel = fl["n_pred"] == k
+    floor = dict(zip(fl["track_id"][sel].tolist(), fl["floor_m"][sel].tolist(), strict=True))
+    per_frame = np.array([floor.get(t, np.nan) for t in rec["track_id"].tolist()], np.float64)
+    return {**rec, "cd_above_floor_m": rec["cd_m"] - per_frame}
+
+
 def detection_summary(rec: dict[str, np.ndarray]) -> tuple[dict, dict]:
     """Errors by detections so far, per motion group (:func:`motion_groups`).
 
     Returns ``(by_detections, late_over_first)``: ``{group: {bin: stats}}`` over the bins of
     :data:`DETECTION_BINS` (labels "1", "2-4", ..., "17+"), stats = ``n_frames``,
     ``n_tracks``, frame-pooled means of :data:`DETECTION_METRICS` and ``flip_pct``; and
-    ``{group: {"cd": r, "trans": r}}``, the error at 17+ detections over the error at the
-    first detection on the same tracks (:func:`late_over_first`). The bins pool their frames
+    ``{group: {"cd": r, "trans": r, "cd_above_floor": r}}`` (the last with
+    :func:`with_floor`'s column), the error at 17+ detections over the error at the first
+    detection on the same tracks (:func:`late_over_first`). The bins pool their frames
     (the 17+ bin holds only the tracks that reach 17 detections, each weighted by its frames
     there); the ratios do not.
     """
@@ -202,7 +225,7 @@ def detection_summary(rec: dict[str, np.ndarray]) -> tuple[dict, dict]:
             by_det[group][label] = st
         ratios[group] = {name: late_over_first(rec, in_group, which == 0,
                                                which == len(labels) - 1, col)
-                         for name, col in (("cd", "cd_m"), ("trans", "trans_m"))}
+                         for name, col in RATIO_COLUMNS if col in rec}
     return by_det, ratios
 
 
@@ -307,18 +330,52 @@ def breakdown(result: EvalResult) -> dict[str, dict[str, dict[str, Any]]]:
 
 
 def floor_summary(result: EvalResult, method: str) -> dict[str, Any]:
-    """The CD floor (cm) for ``method``'s point count, weighted by frames with a CD."""
+    """The CD floor (cm) for ``method``'s point count, weighted by frames with a CD, and the
+    EMD floor (m), weighted by frames with an EMD (None without)."""
     k = result.settings.get("n_pred_points", {}).get(method)
     fl = result.floors
     sel = fl["n_pred"] == k
     rec = result.of(method)
-    frames = {t: int(np.isfinite(rec["cd_m"][rec["track_id"] == t]).sum())
-              for t in np.unique(rec["track_id"])}
-    w = np.array([frames.get(t, 0) for t in fl["track_id"][sel]], dtype=np.float64)
-    vals = fl["floor_m"][sel]
-    value = float((vals * w).sum() / w.sum() * 100.0) if w.sum() > 0 else None
-    return {"cd_floor_cm": value, "n_pred": k, "n_tracks": int(sel.sum()),
+
+    def weighted(values: np.ndarray, column: str) -> float | None:
+        frames = {t: int(np.isfinite(rec[column][rec["track_id"] == t]).sum())
+                  for t in np.unique(rec["track_id"])}
+        w = np.array([frames.get(t, 0) for t in fl["track_id"][sel]], dtype=np.float64)
+        ok = np.isfinite(values) & (w > 0)
+        return float((values[ok] * w[ok]).sum() / w[ok].sum()) if ok.any() else None
+
+    cd = weighted(fl["floor_m"][sel], "cd_m")
+    emd = fl.get("emd_floor_m")
+    return {"cd_floor_cm": None if cd is None else cd * 100.0,
+            "emd_floor_m": None if emd is None else weighted(emd[sel], "emd_m"),
+            "n_pred": k, "n_tracks": int(sel.sum()),
             "methods": sorted(set(fl["method"][sel].tolist()))}
+
+
+def above_floor(summary: dict[str, Any], floors: dict[str, dict[str, Any]]
+                ) -> dict[str, float | None] | None:
+    """The sequential model against the baseline (issue 19): the change (%) of the CD and EMD
+    above their floors, of the raw EMD, the translation and the rotation; None without both."""
+    if "sequential" not in summary or "baseline" not in summary:
+        return None
+    seq, base = summary["sequential"], summary["baseline"]
+
+    def change(a: float | None, b: float | None) -> float | None:
+        if a is None or b is None or not np.isfinite(a) or not np.isfinite(b) or b <= 0:
+            return None
+        return float(100.0 * (a - b) / b)
+
+    def above(key: str, floor_key: str) -> tuple[float | None, float | None]:
+        fs, fb = floors["sequential"].get(floor_key), floors["baseline"].get(floor_key)
+        if None in (seq.get(key), base.get(key), fs, fb):
+            return None, None
+        return seq[key] - fs, base[key] - fb
+
+    return {"cd_pct": change(*above("cd_cm", "cd_floor_cm")),
+            "emd_pct": change(*above("emd_m", "emd_floor_m")),
+            "emd_raw_pct": change(seq.get("emd_m"), base.get("emd_m")),
+            "trans_pct": change(seq.get("trans_cm"), base.get("trans_cm")),
+            "rot_pct": change(seq.get("rot_deg"), base.get("rot_deg"))}
 
 
 def summarize(result: EvalResult, reference: str = "sequential") -> dict[str, Any]:
@@ -326,10 +383,14 @@ def summarize(result: EvalResult, reference: str = "sequential") -> dict[str, An
     out: dict[str, Any] = {}
     details = {}
     for m in result.methods:
-        out[m], details[m] = method_summary(result.of(m))
+        out[m], details[m] = method_summary(with_floor(result, m))
     floors = {m: floor_summary(result, m) for m in result.methods}
     ref = reference if reference in floors else result.methods[0]
     out["cd_floor_cm"] = floors[ref]["cd_floor_cm"]
+    out["emd_floor_m"] = floors[ref]["emd_floor_m"]
+    gains = above_floor(out, floors)
+    if gains is not None:
+        out["above_floor"] = gains
     out["details"] = details
     out["floor"] = {"reference_method": ref, **floors[ref], "per_method": floors}
     out["settings"] = result.settings
@@ -367,13 +428,28 @@ def metrics_markdown(summary: dict[str, Any]) -> str:
     lines += ["", f"CD floor ({surface}, "
                   f"{fl.get('n_pred', '?')} estimated points, method "
                   f"{'/'.join(fl.get('methods', [])) or '?'}): "
-                  f"{'n/a' if floor is None else f'{floor:.2f}'} cm.",
+                  f"{'n/a' if floor is None else f'{floor:.2f}'} cm"
+                  + ("." if summary.get("emd_floor_m") is None else
+                     f"; EMD floor (the same, at the EMD's subsample size): "
+                     f"{_fmt(summary.get('emd_floor_m'), 'emd_m')} m."),
               f"Frame-pooled means over {s.get('n_tracks', '?')} tracks, each run from its first "
               f"to its last detection; EMD exact on {s.get('emd_points', '?')}-point subsamples, "
               f"every {s.get('emd_every', '?')} frame(s)."]
     for m in methods:
         d = summary.get("details", {}).get(m, {})
         lines.append(f"- {m}: {d.get('n_frames', '?')} frames, {d.get('n_emd_m', '?')} with EMD.")
+    gains = summary.get("above_floor")
+    if gains:
+        def pct(key: str) -> str:
+            return "n/a" if gains.get(key) is None else f"{gains[key]:+.1f} %"
+
+        paper = {k: 100.0 * (PAPER_TABLE["sequential"][k] / PAPER_TABLE["baseline"][k] - 1.0)
+                 for k in PAPER_TABLE["baseline"]}
+        lines.append(f"- Sequential against baseline (the paper's Table I: CD {paper['cd_cm']:+.0f} %, "
+                     f"EMD {paper['emd_m']:+.0f} %, translation {paper['trans_cm']:+.0f} %, "
+                     f"rotation {paper['rot_deg']:+.0f} %): CD above its floor {pct('cd_pct')}, "
+                     f"EMD above its floor {pct('emd_pct')} (raw EMD {pct('emd_raw_pct')}), "
+                     f"translation {pct('trans_pct')}, rotation {pct('rot_pct')}.")
     for key, label in EXTRA_LABELS.items():
         det = summary.get("details", {})
         vals = [f"{m} {_fmt(det[m][key], key)}" for m in methods
@@ -478,7 +554,8 @@ def detections_markdown(details: dict[str, dict[str, Any]], methods: list[str]) 
     cols = [f"{what} {lab}" for what in ("CD", "transl.") for lab in labels]
     lines = ["", "### Errors by detections so far (frame-pooled means, cm)", "",
              "| tracks | method | frames at 1 / 17+ | " + " | ".join(cols)
-             + " | CD 17+/1 | transl. 17+/1 |", "|" + "---|" * (len(cols) + 5)]
+             + " | CD 17+/1 | transl. 17+/1 | CD above floor 17+/1 |",
+             "|" + "---|" * (len(cols) + 6)]
     for g in ("all", "moving", "parked"):
         for m, group, per in rows:
             if group != g:
@@ -487,14 +564,16 @@ def detections_markdown(details: dict[str, dict[str, Any]], methods: list[str]) 
             cells = [_fmt(per.get(lab, {}).get(key), key)
                      for key in ("cd_cm", "trans_cm") for lab in labels]
             r = details[m]["late_over_first"].get(g, {})
-            cells += ["n/a" if r.get(k) is None else f"{r[k]:.2f}" for k in ("cd", "trans")]
+            cells += ["n/a" if r.get(k) is None else f"{r[k]:.2f}"
+                      for k in ("cd", "trans", "cd_above_floor")]
             lines.append(f"| {g} | {m} | {' / '.join(n)} | " + " | ".join(cells) + " |")
     lines += ["", f"Parked: the true distance from the sensor spans less than "
                   f"{100 * PARKED_SPREAD_M:g} cm over the track (one repeated view). The bins "
                   f"pool their frames (17+ holds only the tracks that reach 17 detections); "
                   f"the ratios compare each track reaching 17+ with its own first detection "
                   f"(mean over those tracks): below 1, the error falls as detections "
-                  f"accumulate."]
+                  f"accumulate; CD above floor: the CD minus the track's CD floor, the part an "
+                  f"estimate can still lose."]
     return lines
 
 

@@ -73,6 +73,7 @@ from seqshape.errors import ConfigError, SeqshapeError
 from seqshape.evaluation.metrics import (
     cd_floor,
     emd_batch,
+    emd_floor_pair,
     nearest_distances,
     pose_errors,
     stable_seed,
@@ -115,7 +116,8 @@ class EvalResult:
     the CD floor per track, and the settings used."""
 
     records: dict[str, np.ndarray]
-    floors: dict[str, np.ndarray]          # "track_id", "floor_m", "n_pred", "method"
+    floors: dict[str, np.ndarray]          # "track_id", "floor_m", "n_pred", "method",
+                                           # "emd_floor_m" (NaN without EMD)
     settings: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -263,16 +265,19 @@ class _Collector:
             self.pool = ProcessPoolExecutor(
                 max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                 initializer=watch_parent, initargs=(os.getpid(),))
-        self.pending: list[tuple[list[int], Future | list[float]]] = []
-        self.batch: list[tuple[int, tuple[np.ndarray, np.ndarray]]] = []
+        self.pending: list[tuple[list[tuple[bool, int]], Future | list[float]]] = []
+        self.batch: list[tuple[tuple[bool, int], tuple[np.ndarray, np.ndarray]]] = []
+        self.floor_emd: dict[int, float] = {}  # the EMD floors' EMDs (:func:`_floors`)
 
     def add(self, **row) -> int:
         for k in FIELDS:
             self.rows[k].append(row[k])
         return len(self.rows["method"]) - 1
 
-    def add_emd(self, row: int, pair: tuple[np.ndarray, np.ndarray]) -> None:
-        self.batch.append((row, pair))
+    def add_emd(self, row: int, pair: tuple[np.ndarray, np.ndarray], floor: bool = False) -> None:
+        """The EMD of ``pair`` into row ``row``'s ``emd_m``, or with ``floor`` into
+        ``floor_emd[row]``."""
+        self.batch.append(((floor, row), pair))
         if len(self.batch) >= _EMD_TASK:
             self.flush()
 
@@ -299,15 +304,18 @@ class _Collector:
     def _collect_emd(self) -> None:
         """Wait for the EMD jobs, with a bar over frames (ETA) that starts at those done."""
         emd = self.rows["emd_m"]
-        futures: dict[Future, list[int]] = {}
+
+        def put(idx: list[tuple[bool, int]], values: list[float]) -> None:
+            for (floor, i), v in zip(idx, values, strict=True):
+                (self.floor_emd if floor else emd)[i] = v
+
+        futures: dict[Future, list[tuple[bool, int]]] = {}
         done = 0
         for idx, job in self.pending:
             if isinstance(job, Future) and not job.done():
                 futures[job] = idx
                 continue
-            for i, v in zip(idx, job.result() if isinstance(job, Future) else job,
-                            strict=True):
-                emd[i] = v
+            put(idx, job.result() if isinstance(job, Future) else job)
             done += len(idx)
         if not futures:
             return
@@ -316,8 +324,7 @@ class _Collector:
         try:
             for job in as_completed(futures):
                 idx = futures[job]
-                for i, v in zip(idx, job.result(), strict=True):
-                    emd[i] = v
+                put(idx, job.result())
                 bar.update(len(idx))
         finally:
             bar.close()
@@ -560,7 +567,12 @@ def _run_tracks(col: _Collector, name: str, est, tracks: list[Track],
     return k_pred
 
 
-def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int) -> list[tuple]:
+def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int,
+            col: _Collector | None = None, emd_points: int = 0) -> list[tuple]:
+    """Per track with a reference and point count ``k`` of ``n_preds``: ``(track_id, CD floor,
+    k, method, EMD factor)``; with ``col`` and ``emd_points`` the EMD floor's pair
+    (:func:`~seqshape.evaluation.metrics.emd_floor_pair`, the frames' EMD subset size) goes to
+    ``col`` as ``floor_emd[i]``, ``i`` the entry's index (factor NaN without)."""
     out = []
     for tr in tracks:
         if tr.complete is None:
@@ -571,7 +583,12 @@ def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int) -> li
                               f"source in its meta or seqshape.vehicles unavailable)")
         for k in sorted(n_preds):
             value, how = cd_floor(tr.complete, k, stable_seed(seed, tr.track_id), resample)
-            out.append((tr.track_id, value, k, how))
+            factor = np.nan
+            if col is not None and emd_points > 0 and len(tr.complete) >= 8:
+                a, b, factor, _ = emd_floor_pair(tr.complete, min(k, emd_points),
+                                                 stable_seed(seed, tr.track_id, "emd"), resample)
+                col.add_emd(len(out), (a, b), floor=True)
+            out.append((tr.track_id, value, k, how, factor))
     return out
 
 
@@ -639,16 +656,19 @@ def evaluate_tracks(estimators: Mapping[str, EstimatorLike], dataset,
                                spans[c:c + batch_tracks], emd_points, emd_every, bar, hints)
                 k_of[name] = k_of.get(name) or k
         bar.close()
+        fl = _floors(tracks, {k for k in k_of.values() if k}, floor, seed, col,
+                     emd_points if emd_every > 0 else 0)
         records = col.finish()
     except BaseException:
         if col.pool:
             col.pool.shutdown(cancel_futures=True)
         raise
-    fl = _floors(tracks, {k for k in k_of.values() if k}, floor, seed)
     floors = {"track_id": np.array([f[0] for f in fl], dtype=str),
               "floor_m": np.array([f[1] for f in fl], dtype=np.float64),
               "n_pred": np.array([f[2] for f in fl], dtype=np.int64),
-              "method": np.array([f[3] for f in fl], dtype=str)}
+              "method": np.array([f[3] for f in fl], dtype=str),
+              "emd_floor_m": np.array([f[4] * col.floor_emd.get(i, np.nan)
+                                       for i, f in enumerate(fl)], dtype=np.float64)}
     settings = dict(n_tracks=len(tracks), emd_points=emd_points, emd_every=emd_every,
                     floor=floor, seed=seed, methods=list(estimators), hints=hints,
                     modes={name: _mode(est) for name, est in estimators.items()},
