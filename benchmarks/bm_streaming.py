@@ -23,8 +23,13 @@ tree's side by side: two worker processes (this script with ``--worker``, one im
 tree), the repeats alternating between them, one process timing at a time; the table gains a
 ``tree`` column (``old`` / ``new``) and the ratios are to the old copy's first backend.
 
+``--agreement`` adds a table of each backend's agreement with the reference on partial car
+views (``engine.car_stream``; medians and 90th percentiles of the worst shape point, the centre
+and the yaw), beside the reference's own deviation under 1 cm of noise on the points, the
+bound ``"onnx-int8"`` is held to (``engine.INT8_NOISE``).
+
 Run: ``python benchmarks/bm_streaming.py [--backends torch onnx onnx-int8] [--threads 1] [--busy 0]
-[--weights sequential baseline] [--repeats 5] [--seed 0] [--compare-with OLD_SRC]``
+[--weights sequential baseline] [--repeats 5] [--seed 0] [--compare-with OLD_SRC] [--agreement]``
 """
 
 from __future__ import annotations
@@ -43,7 +48,8 @@ import torch
 from _bench import bench_parser, machine_line, print_table, time_it
 
 from seqshape.model import MODEL_PRESETS, Estimator, ShapePoseNet
-from seqshape.model.engine import BACKENDS
+from seqshape.model.engine import BACKENDS, INT8_NOISE, car_stream
+from seqshape.model.estimator import noise_quantiles
 from seqshape.testing import box_surface
 
 
@@ -243,6 +249,9 @@ def main() -> None:
                     help="the src folder of a frozen copy of the tree to measure side by side")
     ap.add_argument("--refiner", default="none",
                     help="placement refiner of the estimators: 'pretrained', a file or 'none'")
+    ap.add_argument("--agreement", action="store_true",
+                    help="also print each backend's agreement with the reference on partial car "
+                         "views, beside the reference's own under 1 cm of noise on the points")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -266,6 +275,43 @@ def main() -> None:
                 align="l" * (2 + len(tree)) + "rrrrrrrr")
     print("\ntargets (issue 17): >= 3000 updates/s, <= 1 ms; 'x ref': speed-up over the first "
           "backend" + ("" if args.compare_with is None else " of the old tree"))
+    if args.agreement:
+        print_agreement(args)
+
+
+def agreement_rows(spec: str, backends: list[str], args) -> list[tuple]:
+    """Rows of the agreement table for one set of weights: per backend other than the
+    reference, the median and 90th percentile of its estimates' deviations from the
+    reference's over ``engine.car_stream`` (worst shape point and centre, cm; yaw, degrees),
+    then the reference's own under ``engine.INT8_NOISE`` of Gaussian noise on the points."""
+    rows, noise = [], None
+    for b in backends:
+        if b == "torch":
+            continue
+        est = load(spec, b, args.threads, args.seed)
+        mine, noise = noise_quantiles(est, car_stream(est.model.cfg.num_points, args.seed),
+                                      INT8_NOISE)
+        rows.append((spec, f"{b} ({est.backend})", *_agreement_cells(mine)))
+    if noise is not None:
+        rows.append((spec, f"torch, {100 * INT8_NOISE:g} cm noise on the points",
+                     *_agreement_cells(noise)))
+    return rows
+
+
+def _agreement_cells(q: np.ndarray) -> list[str]:
+    """``q`` (2, 3): p50 / p90 of shape (m), centre (m), yaw (rad) -> cells (cm, cm, deg)."""
+    scale = np.array([100.0, 100.0, 180.0 / np.pi])
+    return [f"{v:.2f}" for v in (q * scale).T.ravel()]
+
+
+def print_agreement(args) -> None:
+    rows = [row for spec in args.weights for row in agreement_rows(spec, args.backends, args)]
+    print()
+    print_table(("weights", "backend", "shape p50 (cm)", "shape p90", "centre p50 (cm)",
+                 "centre p90", "yaw p50 (deg)", "yaw p90"), rows, align="llrrrrrr")
+    print("\nagreement with the reference over partial car views (seqshape.model.engine."
+          "car_stream): per estimate the worst shape point, the centre and the yaw; the last "
+          "row per weights is the reference's own deviation under noise, onnx-int8's bound")
 
 
 if __name__ == "__main__":
