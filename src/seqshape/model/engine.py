@@ -24,7 +24,7 @@ Backends (:data:`BACKENDS`), each tested against the PyTorch reference (the mode
   without its module and masking overhead).
 * ``"onnx-int8"``: ``"onnx"`` with int8 weights (ONNX Runtime's dynamic quantisation,
   :func:`quantize_onnx`): in passes of many tracks the shape decoder's and the encoder's last
-  per-point layers (:data:`INT8_STEP_LAYERS`; 1.7-1.9x the throughput), estimates held to the
+  per-point layers (:data:`INT8_STEP_LAYERS`; 1.6-1.9x the throughput), estimates held to the
   reference by distribution (:data:`INT8_NOISE`: no further off than 1 cm of noise on the
   points would move them); a track alone the shape decoder's only (:data:`INT8_LAYERS`: the
   pose float32, shape points within 6 cm, :data:`INT8_TOLERANCE`); paper-val metrics within
@@ -93,7 +93,7 @@ SPARE_CHECK_PERIOD = 0.1
 INT8_LAYERS = ("shape_decoder",)
 #: The same for the batched step graph (:class:`StepGraph`), the one of many-track passes:
 #: also the encoder's per-point layers after the split one (``mlp2_rest``; 61 % of the
-#: encoder's multiply-adds with the ``small`` preset), 1.5-1.9x the float32 throughput of 100
+#: encoder's multiply-adds with the ``small`` preset), 1.6-1.9x the float32 throughput of 100
 #: live tracks. Every per-point product of the encoder would add 3 % more and move yaws twice
 #: as far (docs/model.md, "Fifth round: the encoder in int8").
 INT8_STEP_LAYERS = ("shape_decoder", "mlp2_rest")

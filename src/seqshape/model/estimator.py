@@ -223,7 +223,7 @@ class Estimator:
             ``"torch"`` (the reference: the model's own forward pass), ``"onnx"`` (ONNX
             Runtime, ``pip install 'seqshape[fast]'``), ``"torch-lean"`` (the same step
             function in PyTorch), ``"onnx-int8"`` (opt-in: ONNX Runtime with the shape decoder
-            and, for many tracks a pass, the encoder's last layers in int8; 1.7-1.9x the
+            and, for many tracks a pass, the encoder's last layers in int8; 1.6-1.9x the
             100-track throughput of ``"onnx"``, about 1.2x its single-track speed, estimates
             moved less than by 1 cm of noise on the points),
             or ``"auto"``: the first of
