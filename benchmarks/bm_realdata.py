@@ -75,7 +75,7 @@ def tables(metrics: dict, title: str) -> None:
     print(f"\n### {title}\n")
     b = metrics["breakdown"]
     groups = ([("all", b["all"]["all"])] + sorted(b["class_group"].items())
-              + list(b.get("annotation", {}).items()))
+              + list(b.get("annotation", {}).items()) + list(b.get("face_gap", {}).items()))
     rows = []
     for name, g in groups:
         for m in METHODS:

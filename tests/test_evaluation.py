@@ -648,6 +648,11 @@ def test_annotation_breakdown_splits_boxes_off_their_points():
     assert groups[fits]["sequential"]["n_frames"] == int(np.sum(~is_bad & (n >= 10)))
     assert groups[off]["sequential"]["n_frames"] == int(np.sum(is_bad & (n >= 10)))
     assert groups[fits]["sequential"]["centre_cm_median"] == pytest.approx(0.0, abs=1e-6)
+    gaps = summarize(res)["breakdown"]["face_gap"]  # the same frames in the finer bins
+    assert set(gaps) == {"gap <= 5 cm", "gap > 30 cm"}
+    assert gaps["gap <= 5 cm"]["sequential"]["n_frames"] == int(np.sum(~is_bad & (n >= 10)))
+    assert gaps["gap > 30 cm"]["sequential"]["n_frames"] == int(np.sum(is_bad & (n >= 10)))
+    assert gaps["gap > 30 cm"]["sequential"]["centre_cm_median"] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_no_emd_no_emd_floor(dataset):

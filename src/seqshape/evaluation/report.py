@@ -36,12 +36,13 @@ the last of the CD minus the track's CD floor). ``metrics.md`` prints
 the flips per track under the table and a table of errors by detections so far.
 
 Real data (``settings["real"]``: a track's meta says ``source: "real"``): ``metrics.json`` gains
-``"breakdown"``: ``{"all" | "class_group" | "class" | "distance" | "points" | "annotation":
-{group: {method: stats}}}`` with :data:`BREAKDOWN_STATS` (medians and means, cm / deg / %) per
+``"breakdown"``: ``{"all" | "class_group" | "class" | "distance" | "points" | "annotation" |
+"face_gap": {group: {method: stats}}}`` with :data:`BREAKDOWN_STATS` (medians and means, cm / deg / %) per
 group: all frames, car vs larger vehicles (van, truck, bus, trailer), each class, distance bins
 :data:`DISTANCE_BINS` (m), points-per-frame bins :data:`POINT_BINS`, and whether the annotated
 box holds the frame's points (``ref_face_gap_m`` at most :data:`BOX_FITS_M`: "box fits its
-points", else "box off its points"; frames too sparse to tell are in neither). ``metrics.md`` labels
+points", else "box off its points"; frames too sparse to tell are in neither) and, finer, by
+that gap in the bins of :data:`GAP_EDGES_M` (``"face_gap"``). ``metrics.md`` labels
 the CD "CD vs accumulated reference", leaves out the paper's rows (synthetic data) and adds the
 breakdown tables (medians, then means).
 """
@@ -293,6 +294,10 @@ DETECTION_LABELS = tuple(_bin_labels(DETECTION_BINS, "", True))
 #: A box whose faces seen head-on lie at most this far in front of the frame's points (m)
 #: "fits its points" (the synthetic traffic set's median face gap is 0.04 m).
 BOX_FITS_M = 0.15
+#: Edges (m) of the finer "face_gap" breakdown: at most 5 cm (the box holds its points, or they
+#: stand out of it), 5-15, 15-30 and over 30 cm (docs/results.md, "Fusion above the sampling
+#: floors...": on the Argoverse 2 log every method's radial error follows the gap).
+GAP_EDGES_M = (0.05, 0.15, 0.30)
 
 
 def frame_groups(rec: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
@@ -315,7 +320,19 @@ def frame_groups(rec: dict[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]
         with np.errstate(invalid="ignore"):
             groups["annotation"] = {f"box fits its points (<= {BOX_FITS_M:g} m)": gap <= BOX_FITS_M,
                                     f"box off its points (> {BOX_FITS_M:g} m)": gap > BOX_FITS_M}
+            edges = (-np.inf, *GAP_EDGES_M, np.inf)
+            groups["face_gap"] = {_gap_label(lo, hi): (gap > lo) & (gap <= hi)
+                                  for lo, hi in zip(edges[:-1], edges[1:], strict=True)}
     return {k: {g: m for g, m in v.items() if m.any()} for k, v in groups.items()}
+
+
+def _gap_label(lo: float, hi: float) -> str:
+    """The label of one face-gap bin (cm)."""
+    if not np.isfinite(lo):
+        return f"gap <= {100 * hi:g} cm"
+    if not np.isfinite(hi):
+        return f"gap > {100 * lo:g} cm"
+    return f"gap {100 * lo:g}-{100 * hi:g} cm"
 
 
 def breakdown(result: EvalResult) -> dict[str, dict[str, dict[str, Any]]]:
@@ -498,7 +515,9 @@ BREAKDOWN_TITLES = {"all": "All frames",
                     "class_group": "Cars vs larger vehicles",
                     "class": "By class", "distance": "By distance from the sensor",
                     "points": "By points per frame",
-                    "annotation": "By whether the annotated box holds the frame's points"}
+                    "annotation": "By whether the annotated box holds the frame's points",
+                    "face_gap": "By the annotated box's face gap (its faces the sensor sees to "
+                                "the frame's points)"}
 _BD_COLUMNS = (("frames", "n_frames", None), ("centre", "centre_cm", 1),
                ("radial", "radial_cm", 1), ("\\|tang\\|", "tangential_abs_cm", 1),
                ("yaw", "rot_deg", 1), ("yaw w/o flips", "rot_deg_without_flips", 1),
