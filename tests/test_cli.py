@@ -21,9 +21,9 @@ from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 
 # options added since that release (issue 17: inference backends, labelling workers;
 # label --resume; evaluate and label --max-points)
-ADDED = {"label": {"backend": "auto", "workers": 1, "resume": False,
+ADDED = {"label": {"backend": "auto-float", "workers": 1, "resume": False,
                    "placement": "pretrained", "max_points": None},
-         "evaluate": {"backend": "auto", "refiner": "pretrained", "max_points": None}}
+         "evaluate": {"backend": "auto-float", "refiner": "pretrained", "max_points": None}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
 # (33229e9), plus ADDED; paths as strings

@@ -180,11 +180,27 @@ def test_auto_picks_the_first_backend_that_passes(monkeypatch):
     net = _net({})
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the first choice passes: no warning
-        assert Estimator(net, backend="auto").backend == "onnx"
-        assert Estimator(net, backend="auto").backend == "onnx"
-    assert calls == ["onnx"]  # checked once per process and model
-    Estimator(_net({}, seed=1), backend="auto")  # other weights: checked again
-    assert calls == ["onnx", "onnx"]
+        assert Estimator(net, backend="auto").backend == "onnx-int8"
+        assert Estimator(net, backend="auto").backend == "onnx-int8"
+        assert Estimator(net, backend="auto-float").backend == "onnx"
+        assert Estimator(net, backend="auto-float").backend == "onnx"
+    assert calls == ["onnx-int8", "onnx"]  # checked once per process, model and order
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (these random weights may fail int8's check)
+        Estimator(_net({}, seed=1), backend="auto")  # other weights: checked again
+    assert calls[:3] == ["onnx-int8", "onnx", "onnx-int8"]
+
+
+def test_auto_passes_over_int8_when_its_check_fails(monkeypatch, caplog):
+    """Weights whose int8 estimates move more than the bound: ``"auto"`` runs float32, says
+    so in the log, and does not warn (float32 is the exact choice, not a fallback)."""
+    real = estimator_module.check_backend
+    monkeypatch.setattr(estimator_module, "check_backend",
+                        lambda fast: fast.backend != "onnx-int8" and real(fast))
+    with warnings.catch_warnings(), caplog.at_level("INFO", logger="seqshape.model.engine"):
+        warnings.simplefilter("error")
+        assert Estimator(_net({}), backend="auto").backend == "onnx"
+    assert "'onnx' chosen (onnx-int8: outputs differ" in caplog.text
 
 
 def test_auto_falls_back_with_a_warning_when_the_runtime_is_missing(monkeypatch):
@@ -193,7 +209,8 @@ def test_auto_falls_back_with_a_warning_when_the_runtime_is_missing(monkeypatch)
 
     monkeypatch.setattr(engine_module, "require", missing)
     net = _net({"frame_skip": True})
-    with pytest.warns(RuntimeWarning, match="onnx: runtime not installed.*seqshape\\[fast\\]"):
+    with pytest.warns(RuntimeWarning, match="onnx-int8: runtime not installed.*onnx: runtime "
+                      "not installed.*seqshape\\[fast\\]"):
         est = Estimator(net, backend="auto")
     assert est.backend == "torch-lean"
     with pytest.raises(MissingDependencyError, match="seqshape\\[fast\\]"):
@@ -208,7 +225,8 @@ def test_loaders_default_to_auto_and_check_arguments(tmp_path):
 
     path = tmp_path / "model.pt"
     save_payload(path, model_payload(_net({}), {}, {}))
-    assert Estimator.load(path).backend == "onnx"
+    assert Estimator.load(path).backend == "onnx-int8"
+    assert Estimator.load(path, backend="auto-float").backend == "onnx"
     assert Estimator.from_checkpoint(path, backend="torch-lean").backend == "torch-lean"
     assert Estimator(_net({})).backend == "torch"  # a model object: the reference
     with pytest.raises(ConfigError, match="unknown inference backend 'tensorrt'"):
@@ -323,22 +341,28 @@ def test_int8_check_fails_on_a_biased_engine(monkeypatch):
 def test_int8_quantises_the_shape_decoder_and_the_encoders_last_layers():
     """Every option on: the batched graph's shape decoder and the encoder's per-point layers
     after the split one become int8 products, nothing else (the GRU, the pose decoder, the
-    encoder's first layers stay float32); the one-track graph's shape decoder alone, so that a
+    encoder's first layers stay float32), the encoder's last one quantised per track with its
+    bias and scale after the max-pool; the one-track graph's shape decoder alone, so that a
     track alone gets the reference's pose and shape points within 2 % of the shape's extent."""
     onnx = pytest.importorskip("onnx")
     net = _net(OPTIONS[-1])
     graph = export_onnx(net)
+    float_products = sum(n.op_type in ("Gemm", "MatMul")
+                         for n in onnx.load_from_string(graph).graph.node)
     int8 = onnx.load_from_string(quantize_onnx(graph, INT8_STEP_LAYERS))
-    ints = [n.name for n in int8.graph.node if n.op_type == "MatMulInteger"]
+    ints = [n.name for n in int8.graph.node if n.op_type == "MatMulIntegerToFloat"]
     assert len(ints) == len(net.shape_decoder) // 2 + 1 + (len(net.encoder.mlp2) - 1) // 2
-    assert all(n.startswith(("/shape_decoder/", "/mlp2_rest/")) for n in ints), ints
+    left = [n.name for n in int8.graph.node if n.op_type in ("Gemm", "MatMul")]
+    assert len(left) == float_products - len(ints)
+    assert not any(n.startswith(("/shape_decoder/", "/mlp2_rest/")) for n in left), left
+    per_track = [n for n in int8.graph.node if n.op_type == "QuantizeLinear"
+                 and any(a.name == "axis" and a.i == 0 for a in n.attribute)]
+    assert len(per_track) == 1  # the encoder's pooled layer: one scale per track
     one = onnx.load_from_string(quantize_onnx(export_onnx(net, one_track=True), INT8_LAYERS))
-    ints = [n.name for n in one.graph.node if n.op_type == "MatMulInteger"]
-    assert len(ints) == len(net.shape_decoder) // 2 + 1
-    assert all(n.startswith("/shape_decoder/") for n in ints), ints
+    assert [n.op_type for n in one.graph.node].count("MatMulIntegerToFloat") == \
+        len(net.shape_decoder) // 2 + 1
     every = onnx.load_from_string(quantize_onnx(graph, None))
-    products = sum(n.op_type in ("Gemm", "MatMul") for n in onnx.load_from_string(graph).graph.node)
-    assert [n.op_type for n in every.graph.node].count("MatMulInteger") == products
+    assert [n.op_type for n in every.graph.node].count("MatMulIntegerToFloat") == float_products
     with pytest.raises(RuntimeError, match="no matrix product in the layers"):
         quantize_onnx(graph, ("no_such_layer",))
     fast, ref = Estimator(net, backend="onnx-int8"), Estimator(net, backend="torch")
@@ -348,6 +372,105 @@ def test_int8_quantises_the_shape_decoder_and_the_encoders_last_layers():
             assert np.abs(a.complete - b.complete).max() <= 0.02 * extent, f"step {t}"
             assert np.abs(a.pose[:3] - b.pose[:3]).max() <= TOL_CENTRE
             assert abs(wrap_angle(a.pose[3] - b.pose[3])) <= TOL_YAW
+
+
+def _quantised_layer_graph(w: np.ndarray, b: np.ndarray, pooled: bool, relu: bool,
+                           points: int = 5) -> bytes:
+    """A hand-made ONNX graph of one layer ``x W^T + b`` (``Gemm``, transB): on rows
+    ``(B, K)`` (after a ReLU or not), or the encoder's pooled form ``Relu (B, P, K) ->
+    Reshape (B * P, K) -> Gemm -> Reshape (B, P, N) -> ReduceMax over P``."""
+    onnx = pytest.importorskip("onnx")
+    h, nh = onnx.helper, onnx.numpy_helper
+    n_out, k = w.shape
+    init = [nh.from_array(w, "w"), nh.from_array(b, "b")]
+    if pooled:
+        init += [nh.from_array(np.array([-1, k], np.int64), "flat"),
+                 nh.from_array(np.array([-1, points, n_out], np.int64), "back")]
+        nodes = [h.make_node("Relu", ["x"], ["r"], name="/enc/Relu"),
+                 h.make_node("Reshape", ["r", "flat"], ["rows"], name="/enc/Reshape"),
+                 h.make_node("Gemm", ["rows", "w", "b"], ["g"], name="/layer/Gemm", transB=1),
+                 h.make_node("Reshape", ["g", "back"], ["g3"], name="/enc/Reshape_1"),
+                 h.make_node("ReduceMax", ["g3"], ["y"], name="/enc/ReduceMax", axes=[1],
+                             keepdims=0)]
+        x_shape = ["B", points, k]
+    else:
+        nodes = [h.make_node("Relu" if relu else "Identity", ["x"], ["r"], name="/pre/op"),
+                 h.make_node("Gemm", ["r", "w", "b"], ["y"], name="/layer/Gemm", transB=1)]
+        x_shape = ["B", k]
+    graph = h.make_graph(nodes, "layer", [h.make_tensor_value_info("x", 1, x_shape)],
+                         [h.make_tensor_value_info("y", 1, None)], init)
+    return h.make_model(graph, opset_imports=[h.make_opsetid("", 17)]).SerializeToString()
+
+
+@pytest.mark.parametrize("form", ["rows after a ReLU", "signed rows", "pooled per track"])
+def test_int8_layer_against_a_numpy_reference(form):
+    """One quantised layer computed by ONNX Runtime against the arithmetic written out in
+    numpy: weights int8 per output channel (max |w| / 127), inputs 7 bits on one scale per
+    row (127 steps over [0, max] after a ReLU; 126 over [-max, max] around 64 otherwise) or,
+    in the pooled form, per track over all its points with the scale and bias after the max.
+    Also close to the float layer, and a track's output the same whatever shares its pass."""
+    ort = pytest.importorskip("onnxruntime")
+    rng = np.random.default_rng(4)
+    n_out, k, points, batch = 24, 16, 5, 6
+    w = rng.normal(0, 0.5, (n_out, k)).astype(np.float32)
+    w[3] = 0.0  # an all-zero output channel keeps a finite scale
+    b = rng.normal(0, 0.5, n_out).astype(np.float32)
+    pooled, relu = form == "pooled per track", form == "rows after a ReLU"
+    shape = (batch, points, k) if pooled else (batch, k)
+    x = (rng.normal(0, 1, shape) * rng.uniform(0.01, 50, (batch,) + (1,) * (len(shape) - 1))
+         ).astype(np.float32)
+    x[1] = 0.0  # a track of zeros
+    graph = quantize_onnx(_quantised_layer_graph(w, b, pooled, relu, points), ("layer",))
+    sess = ort.InferenceSession(graph, providers=["CPUExecutionProvider"])
+    got = sess.run(None, {"x": x})[0]
+
+    s_w = np.abs(w).max(axis=1) / 127.0
+    s_w = np.where(s_w > 0, s_w, 1.0).astype(np.float32)
+    wq = np.clip(np.rint(w / s_w[:, None]), -127, 127)  # (N, K)
+    xr = np.maximum(x, 0) if (relu or pooled) else x
+    if pooled:
+        m = np.maximum(xr.reshape(batch, -1).max(axis=1), 1e-30).astype(np.float32)
+        q = np.clip(np.rint(xr / (m / np.float32(127))[:, None, None]), 0, 127)
+        want = (q @ wq.T * s_w).max(axis=1) * (m / 127)[:, None] + b
+        ref = (xr @ w.T + b).max(axis=1)
+    else:
+        levels, zp = (127, 0) if relu else (63, 64)
+        m = np.maximum(np.abs(xr).max(axis=1, keepdims=True), 1e-30).astype(np.float32)
+        q = np.clip(np.rint((xr / m) / np.float32(1 / levels)) + zp, 0, 127)
+        want = ((q - zp) @ wq.T) * (s_w / levels) * m + b
+        ref = xr @ w.T + b
+    scale = np.abs(ref).max(axis=1, keepdims=True) + 1e-6
+    assert np.all(np.abs(got - want) <= 1e-5 * scale), np.abs(got - want).max()
+    assert np.all(np.abs(got - ref) <= 0.05 * scale)  # int8 rounding, not a wrong scale
+    assert np.abs(got - ref).max() > 1e-4 * scale.max()  # it does round
+    np.testing.assert_allclose(got[1], b, rtol=0, atol=1e-6)  # a track of zeros: the bias
+    others = x.copy()
+    others[2:] *= 40.0  # a pass whose other tracks are much larger
+    again = sess.run(None, {"x": others})[0]
+    np.testing.assert_array_equal(again[0], got[0])
+    np.testing.assert_array_equal(sess.run(None, {"x": x[:1]})[0][0], got[0])
+
+
+def test_int8_track_estimate_does_not_depend_on_its_pass():
+    """Through :meth:`Estimator.step`: a track's estimates over a stream are the same (to
+    float32 rounding) whether it shares its passes with a few small cars or with many large
+    vehicles, and after a reset of the others."""
+    net = _net(OPTIONS[-1])
+    rng = np.random.default_rng(9)
+    mine = [_cloud(rng, 20 + 7 * t, (11.0 + 0.4 * t, 3.0, -0.9, 0.3)) for t in range(4)]
+    runs = []
+    for others, size in ((3, 1.0), (9, 4.0)):
+        est = Estimator(net, backend="onnx-int8")
+        got = []
+        for t in range(4):
+            ids = ["me"] + [f"o{j}" for j in range(others)]
+            clouds = [mine[t]] + [_cloud(rng, 30, (8.0 + 2 * j, -5.0, -0.9, 1.0)) * size
+                                  for j in range(others)]
+            got.append(est.step(ids, clouds)[0])
+        runs.append(got)
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_allclose(a.complete, b.complete, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(a.pose, b.pose, rtol=0, atol=1e-5)
 
 
 def _single_track_steps(rng, num_points: int, track: str = "solo") -> list[dict]:

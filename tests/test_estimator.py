@@ -108,8 +108,11 @@ def test_checkpoint_round_trip(tmp_path):
     ref = Estimator(model).step(["a"], [pts])[0]
     exact = Estimator.from_checkpoint(path, backend="torch")  # the reference: bit for bit
     np.testing.assert_array_equal(exact.step(["a"], [pts])[0].complete, ref.complete)
-    # the loaders' default backend ("auto"): float32 arithmetic in another order
-    np.testing.assert_allclose(est.step(["a"], [pts])[0].complete, ref.complete, atol=1e-5)
+    # the float32 fast backends: the same arithmetic in another order
+    fl = Estimator.from_checkpoint(path, backend="auto-float")
+    np.testing.assert_allclose(fl.step(["a"], [pts])[0].complete, ref.complete, atol=1e-5)
+    # the loaders' default, "auto": int8 where its check passes (these random weights may not)
+    assert est.backend in ("onnx-int8", "onnx")
 
 
 @pytest.mark.filterwarnings("ignore:Detected pickle protocol")

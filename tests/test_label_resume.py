@@ -276,10 +276,12 @@ def test_settings_of_the_estimator(root, tmp_path):
 
     base = settings()
     assert base["weights"] == digest and base["inference"] == "float32"
-    for backend in ("auto", "torch", "onnx", "torch-lean"):
+    for backend in ("auto-float", "torch", "onnx", "torch-lean"):
         assert settings(backend=backend) == base
     assert settings_differences(base, settings(backend="onnx-int8")) == [
         "inference: 'float32' there vs 'int8' now"]
+    with pytest.raises(ConfigError, match="'auto' may run int8 or float32"):
+        settings(backend="auto")  # unresolved: the label command records what it chose
     assert settings_differences(base, settings(trim=2.0)) == ["trim: 1.0 there vs 2.0 now"]
     assert settings_differences(base, settings(max_points=128)) == [
         "max_points: None there vs 128 now"]  # fewer points per frame: other estimates

@@ -257,7 +257,7 @@ def test_init_changes_the_points_per_frame(dataset, source, tmp_path):
     _assert_same(tr.model.state_dict(), _weights(source / "model.pt"))
     out = tr.run()
     assert torch.load(out, weights_only=True)["model_config"]["num_points"] == old_n // 2
-    old, new = Estimator.from_checkpoint(source / "model.pt"), Estimator.from_checkpoint(out)
+    old, new = (Estimator.from_checkpoint(p, backend="auto-float") for p in (source / "model.pt", out))
     rng = np.random.default_rng(1)
     small = [rng.uniform(-0.5, 0.5, (old_n // 4, 3)) * [4.5, 1.8, 1.5] + [8, 2, 0]]
     a, b = old.step(["t"], small)[0], new.step(["t"], small)[0]

@@ -88,8 +88,9 @@ class LabelConfig:
         shapes) or sc-seg (no boxes: 2D instance masks and completed shapes).
     checkpoint: estimator weights (path), or "pretrained" for the shipped ones (sc-* modes).
     backend: sc-* modes: the estimator's inference backend, one of
-        seqshape.model.engine.BACKENDS ('auto': the fastest one that passes its check against
-        PyTorch on this machine; docs/model.md).
+        seqshape.model.engine.BACKENDS ('auto-float': the fastest float32 one that passes its
+        check against PyTorch on this machine; 'auto' may take int8, which does not speed up
+        labelling's passes of 10-20 vehicles; docs/model.md).
     refine: offline refinement, one of ``REFINE_MODES`` (sc-* modes).
     order: occlusion rule of :func:`seqshape.amodal.masks.resolve_occlusion`.
     alpha: alpha of the alpha shapes (None = automatic).
@@ -146,7 +147,7 @@ class LabelConfig:
 
     mode: str = "sc-gt"
     checkpoint: str | None = "pretrained"
-    backend: str = "auto"
+    backend: str = "auto-float"
     refine: str = DEFAULT_REFINE
     order: str = "pixel"
     alpha: float | None = None
@@ -203,7 +204,7 @@ class LabelResult:
     camera: str | None = None
 
 
-def load_estimator(checkpoint: str | None, backend: str = "auto",
+def load_estimator(checkpoint: str | None, backend: str = "auto-float",
                    placement: str = "pretrained", max_points: int | None = None):
     """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped sequential
     one): :meth:`seqshape.model.estimator.Estimator.load`, with the placement refiner
@@ -811,8 +812,13 @@ _NOT_RECORDED = ("checkpoint", "backend")
 def inference_arithmetic(backend: str) -> str:
     """What of the estimator's backend can change labels beyond float noise: ``"int8"`` for
     ``onnx-int8`` (shape points move by up to a few cm), ``"float32"`` for the others
-    (``auto``, ``torch``, ``onnx``, ``torch-lean``: the same float32 network, shape points
-    within 2 mm of each other, :data:`seqshape.model.engine.TOLERANCE`)."""
+    (``auto-float``, ``torch``, ``onnx``, ``torch-lean``: the same float32 network, shape
+    points within 2 mm of each other, :data:`seqshape.model.engine.TOLERANCE`). ``"auto"``
+    may be either: resolve it first (the loaded estimator's ``backend``), else
+    :class:`~seqshape.errors.ConfigError`."""
+    if backend == "auto":
+        raise ConfigError("backend 'auto' may run int8 or float32: record the backend the "
+                          "estimator chose (Estimator.backend)")
     return "int8" if backend == "onnx-int8" else "float32"
 
 

@@ -87,7 +87,8 @@ def amodal_demo_step(work_dir, checkpoint: str | None = "pretrained", seed: int 
     note = ""
     if estimator is None:
         try:
-            estimator = Estimator.load("pretrained" if checkpoint is None else checkpoint)
+            estimator = Estimator.load("pretrained" if checkpoint is None else checkpoint,
+                                       backend="auto-float")
         except SeqshapeError as exc:
             note = f"sc-gt and sc-seg skipped: no estimator weights ({exc})."
             log.warning("%s", note)

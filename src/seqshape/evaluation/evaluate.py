@@ -59,8 +59,10 @@ class EvaluateConfig:
         unchanged by it).
     hints: feed the networks each track's class and ego poses, as a user's pipeline would
         (off: the points alone, and the heading step then never acts; docs/evaluation.md).
-    backend: inference backend of both networks (seqshape.model.engine.BACKENDS; 'auto': the
-        fastest one that passes its check against PyTorch on this machine; docs/model.md).
+    backend: inference backend of both networks (seqshape.model.engine.BACKENDS; 'auto-float':
+        the fastest float32 one that passes its check against PyTorch on this machine, so that
+        the metrics are the model's own; 'auto' may take int8, within 0.4 % of them;
+        docs/model.md).
     refiner: placement refiner of both networks (seqshape.model.placement): 'pretrained' (the
         shipped one, trained on the shipped networks' estimates), a refiner file, or 'none' (the
         networks' own placement).
@@ -82,7 +84,7 @@ class EvaluateConfig:
     seed: int = 0
     offline: bool = False
     hints: bool = True
-    backend: str = "auto"
+    backend: str = "auto-float"
     refiner: str = "pretrained"
     max_points: int | None = None
 
@@ -95,7 +97,8 @@ class EvaluateConfig:
             raise ConfigError("--max-points must be >= 1")
 
 
-def load_estimator(spec: str, kind: str, backend: str = "auto", max_points: int | None = None):
+def load_estimator(spec: str, kind: str, backend: str = "auto-float",
+                   max_points: int | None = None):
     """:meth:`Estimator.load` of ``spec`` ('pretrained': the shipped weights of ``kind``),
     checked to be of ``kind``; the error names the flag that takes the other kind."""
     est = Estimator.load(kind if spec == "pretrained" else spec, backend=backend,

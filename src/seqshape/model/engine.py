@@ -22,18 +22,20 @@ Backends (:data:`BACKENDS`), each tested against the PyTorch reference (the mode
   ONNX Runtime (optional extra ``seqshape[fast]``); float32, within 1e-4 m of the reference.
 * ``"torch-lean"``: :class:`StepGraph` run by PyTorch in float32 (the reference's arithmetic
   without its module and masking overhead).
-* ``"onnx-int8"``: ``"onnx"`` with int8 weights (ONNX Runtime's dynamic quantisation,
-  :func:`quantize_onnx`): in passes of many tracks the shape decoder's and the encoder's last
-  per-point layers (:data:`INT8_STEP_LAYERS`; 1.6-1.9x the throughput), estimates held to the
-  reference by distribution (:data:`INT8_NOISE`: no further off than 1 cm of noise on the
-  points would move them); a track alone the shape decoder's only (:data:`INT8_LAYERS`: the
-  pose float32, shape points within 6 cm, :data:`INT8_TOLERANCE`); paper-val metrics within
-  0.4 % of the reference.
+* ``"onnx-int8"``: ``"onnx"`` with int8 matrix products (:func:`quantize_onnx`, inputs
+  quantised per track, so a track's estimate does not depend on the other tracks of its pass):
+  in passes of many tracks the shape decoder's and the encoder's last per-point layers
+  (:data:`INT8_STEP_LAYERS`; 1.5-1.6x the throughput), estimates held to the reference by
+  distribution (:data:`INT8_NOISE`: no further off than 1 cm of noise on the points would
+  move them); a track alone the shape decoder's only (:data:`INT8_LAYERS`: the pose float32,
+  shape points within 6 cm, :data:`INT8_TOLERANCE`); paper-val metrics within 0.4 % of the
+  reference.
 
 ``"auto"`` (:func:`select_backend`) takes the first of :data:`AUTO_ORDER` whose runtime is
 installed and whose outputs match the reference on this machine
 (:func:`seqshape.model.estimator.check_backend`), warning about any it passes over, and the
 reference when none qualifies; the decision is cached per process and model.
+``"auto-float"`` does the same over the float32 backends only (:data:`FLOAT_ORDER`).
 """
 
 from __future__ import annotations
@@ -42,7 +44,6 @@ import io
 import json
 import logging
 import os
-import tempfile
 import time
 import warnings
 import zlib
@@ -57,16 +58,24 @@ from torch import nn
 from seqshape.errors import ConfigError, MissingDependencyError, require
 from seqshape.geometry import box_surface
 from seqshape.model.graph_cache import cached_graph
+from seqshape.model.int8 import quantize_graph
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet, motion_features
 from seqshape.model.transforms import place_points
 
 log = logging.getLogger(__name__)
 
 #: Every backend name :meth:`Estimator.load` accepts.
-BACKENDS = ("auto", "torch", "onnx", "torch-lean", "onnx-int8")
+BACKENDS = ("auto", "auto-float", "torch", "onnx", "torch-lean", "onnx-int8")
 #: Candidates of ``backend="auto"``, fastest first (measured in docs/model.md,
-#: "Inference backends (issue 17)"); the reference ``"torch"`` is the fallback.
-AUTO_ORDER = ("onnx", "torch-lean")
+#: "Inference backends (issue 17)" and "Sixth round: int8 per track"); the reference
+#: ``"torch"`` is the fallback.
+AUTO_ORDER = ("onnx-int8", "onnx", "torch-lean")
+#: Candidates of ``backend="auto-float"``: the float32 ones of :data:`AUTO_ORDER` (the
+#: reference's arithmetic in another order; ``seqshape evaluate`` and ``label`` default to it:
+#: metrics of the model itself, and labelling's passes of 10-20 tracks gain nothing from int8).
+FLOAT_ORDER = ("onnx", "torch-lean")
+#: The candidates of each automatic backend name.
+AUTO_ORDERS = {"auto": AUTO_ORDER, "auto-float": FLOAT_ORDER}
 #: Inputs and outputs of :class:`StepGraph` (and of the exported ONNX graph), in order.
 GRAPH_INPUTS = ("points", "lengths", "hidden", "mean", "seen", "scale", "dts", "counts", "gap")
 GRAPH_OUTPUTS = ("complete", "pose", "hidden_out", "mean_out", "seen_out", "gap_out")
@@ -93,7 +102,7 @@ SPARE_CHECK_PERIOD = 0.1
 INT8_LAYERS = ("shape_decoder",)
 #: The same for the batched step graph (:class:`StepGraph`), the one of many-track passes:
 #: also the encoder's per-point layers after the split one (``mlp2_rest``; 61 % of the
-#: encoder's multiply-adds with the ``small`` preset), 1.6-1.9x the float32 throughput of 100
+#: encoder's multiply-adds with the ``small`` preset), 1.4-1.6x the float32 throughput of 100
 #: live tracks. Every per-point product of the encoder would add 3 % more and move yaws twice
 #: as far (docs/model.md, "Fifth round: the encoder in int8").
 INT8_STEP_LAYERS = ("shape_decoder", "mlp2_rest")
@@ -109,12 +118,13 @@ TOLERANCE = (2e-3, 2e-4, 1e-3)
 #: The same for ``"onnx-int8"``'s one-track graph (:class:`OneTrackGraph`, the shape decoder
 #: alone in int8): its pose is float32 (the tolerance above), its shape points move by the
 #: int8 rounding of the shape decoder's weights and inputs: measured on the shipped (round 9)
-#: weights, 40 real-looking tracks over 4 steps, the worst point of an estimate up to 32 mm
-#: (sequential) and 46 mm (baseline), median 10 and 12 mm; a wrong scale or zero point of the
-#: quantisation moves them by decimetres. Its batched graph is held to :data:`INT8_NOISE`.
+#: weights, :func:`car_stream`'s 40 tracks over 4 steps each stepped alone, the worst point of
+#: an estimate up to 16 mm (both models), median 8 mm (per-row quantisation; ONNX Runtime's
+#: dynamic one gave 32 and 46 mm); a wrong scale or zero point of the quantisation moves them
+#: by decimetres. Its batched graph is held to :data:`INT8_NOISE`.
 INT8_TOLERANCE = (6e-2, TOLERANCE[1], TOLERANCE[2])
 #: ``"onnx-int8"``'s batched graph also runs the encoder's last per-point layers in int8
-#: (:data:`INT8_STEP_LAYERS`), with the inputs quantised per pass over all its tracks: that
+#: (:data:`INT8_STEP_LAYERS`), with the inputs quantised per track over all its points: that
 #: moves an estimate about as far as 5 mm of Gaussian noise on its points would (less than a
 #: LiDAR's range noise, 2-3 cm), and sometimes a yaw the network is unsure of by degrees, so it
 #: is held to the reference by distribution, not estimate by estimate: over
@@ -122,10 +132,10 @@ INT8_TOLERANCE = (6e-2, TOLERANCE[1], TOLERANCE[2])
 #: reference's (worst shape point, centre, yaw) must not exceed those of the reference's own
 #: estimates with this much Gaussian noise (m) on the points
 #: (:func:`seqshape.model.estimator.noise_quantiles`). Measured with the shipped weights on
-#: :func:`car_stream`, three seeds (90th percentiles, int8 against 1 cm of noise): worst shape
-#: point 2.5-5.2 against 10-23 cm, centre 0.3-0.6 against 1.8-3.6 cm, yaw 0.6-1.1 against
-#: 2.4-4.4 degrees; paper-val metrics within 0.4 %
-#: (docs/model.md, "Fifth round: the encoder in int8").
+#: :func:`car_stream`, three seeds (90th percentiles, int8 against 1 cm of noise, mean of the
+#: seeds): sequential worst shape point 3.5 against 18.9 cm, centre 0.37 against 2.1 cm, yaw
+#: 0.8 against 4.4 degrees; baseline 5.4, 0.85 and 1.2 against 19.9, 3.4 and 4.2; paper-val
+#: metrics within 0.4 % (docs/model.md, "Sixth round: int8 per track").
 #: A wrong scale or zero point moves every estimate by decimetres.
 INT8_NOISE = 0.01
 
@@ -543,42 +553,14 @@ def _session_options(ort, threads: int | None, spin: bool = False):
 
 
 def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes:
-    """``graph`` (ONNX bytes of :func:`export_onnx`) with the weights of the matrix products
-    of ``layers`` (submodule names of :class:`StepGraph`, e.g. ``"shape_decoder"``; None:
-    every one) quantised to int8 per output channel by ONNX Runtime's dynamic quantisation:
-    their inputs are quantised to uint8 at run time, per call over the whole batch.
+    """``graph`` (ONNX bytes of :func:`export_onnx`) with the matrix products of ``layers``
+    (submodule names of :class:`StepGraph`, e.g. ``"shape_decoder"``; None: every one) in
+    int8: weights per output channel, inputs quantised at run time per track, so that a
+    track's estimate does not depend on the other tracks of its pass
+    (:func:`seqshape.model.int8.quantize_graph`; ONNX Runtime's ``MatMulIntegerToFloat``).
 
-    Raises :class:`RuntimeError` when the quantiser did not convert exactly those products
-    (a change of the exporter's node names would otherwise quantise nothing silently)."""
-    onnx = require("onnx", "exporting the network to ONNX", "seqshape[fast]")
-    quant = require("onnxruntime.quantization", "the int8 inference backend", "seqshape[fast]")
-    proto = onnx.load_from_string(graph)
-    nodes = [n.name for n in proto.graph.node if n.op_type in ("Gemm", "MatMul")
-             and (layers is None or any(n.name.startswith(f"/{name}/") for name in layers))]
-    if not nodes:  # (an empty list would tell the quantiser to convert every product)
-        raise RuntimeError(f"int8 quantisation: no matrix product in the layers {layers}")
-    # the quantiser first splits a Gemm into MatMul + Add, renaming it "<name>_MatMul"
-    names = nodes + [f"{n}_MatMul" for n in nodes]
-    root = logging.getLogger()
-    level = root.level
-    with tempfile.TemporaryDirectory() as tmp:
-        src, dst = f"{tmp}/float.onnx", f"{tmp}/int8.onnx"
-        with open(src, "wb") as f:
-            f.write(graph)
-        root.setLevel(logging.ERROR)  # its advice to pre-process goes to the root logger
-        try:
-            quant.quantize_dynamic(src, dst, weight_type=quant.QuantType.QInt8,
-                                   per_channel=True, op_types_to_quantize=["MatMul", "Gemm"],
-                                   nodes_to_quantize=names)
-        finally:
-            root.setLevel(level)
-        with open(dst, "rb") as f:
-            out = f.read()
-    done = sum(n.op_type == "MatMulInteger" for n in onnx.load_from_string(out).graph.node)
-    if done != len(nodes):
-        raise RuntimeError(f"int8 quantisation converted {done} of the {len(nodes)} matrix "
-                           f"products of {layers}")
-    return out
+    Raises :class:`RuntimeError` when ``layers`` names no matrix product."""
+    return quantize_graph(graph, layers)
 
 
 def export_onnx(model: ShapePoseNet, one_track: bool = False) -> bytes:
@@ -757,12 +739,14 @@ def select_backend(model: ShapePoseNet, check: Callable[[str], bool],
                    order: tuple[str, ...] = AUTO_ORDER) -> str:
     """The backend ``"auto"`` picks for ``model``: the first of ``order`` whose runtime is
     installed and for which ``check(name)`` is True, else the reference ``"torch"``. Warns
-    (``RuntimeWarning``) when the first choice is passed over, saying why. Cached per process
-    and model (:func:`model_fingerprint`), so the check runs once."""
+    (``RuntimeWarning``) when a backend is passed over, saying why; an int8 one whose check
+    fails only logs it (float32 is then the exact choice: some weights round worse than
+    others). Cached per process, model (:func:`model_fingerprint`) and ``order``, so the
+    check runs once."""
     key = (model_fingerprint(model), order)
     if key in _AUTO_CACHE:
         return _AUTO_CACHE[key]
-    reasons, chosen = [], "torch"
+    reasons, quiet, chosen = [], [], "torch"
     for name in order:
         try:
             ok = check(name)
@@ -772,9 +756,12 @@ def select_backend(model: ShapePoseNet, check: Callable[[str], bool],
         if ok:
             chosen = name
             break
-        reasons.append(f"{name}: outputs differ from the reference on this machine")
+        why = f"{name}: outputs differ from the reference on this machine"
+        (quiet if name == "onnx-int8" else reasons).append(why)
+    if quiet:
+        log.info("inference backend %r chosen (%s)", chosen, "; ".join(quiet))
     if reasons:
-        warnings.warn(f"inference backend {chosen!r} chosen ({'; '.join(reasons)})",
+        warnings.warn(f"inference backend {chosen!r} chosen ({'; '.join(reasons + quiet)})",
                       RuntimeWarning, stacklevel=3)
     _AUTO_CACHE[key] = chosen
     return chosen

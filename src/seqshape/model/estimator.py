@@ -34,7 +34,8 @@ one place that turns such a spec into a file (training's ``--init`` uses it too)
 
 How :meth:`Estimator.step` runs the network is its ``backend`` (:mod:`seqshape.model.engine`):
 the loaders default to ``"auto"``, ONNX Runtime when installed (``seqshape[fast]``) and
-matching the PyTorch reference here, which ``backend="torch"`` always runs.
+matching the PyTorch reference here (int8 first, float32 next), which ``backend="torch"``
+always runs; ``"auto-float"`` keeps to float32.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ from seqshape.data.windows import points_lengths, resample_frame
 from seqshape.errors import ConfigError, DataError
 from seqshape.model.config import ModelConfig
 from seqshape.model.engine import (
+    AUTO_ORDERS,
     BACKENDS,
     StepInputs,
     car_stream,
@@ -222,13 +224,15 @@ class Estimator:
         backend: how :meth:`step` runs the network (:data:`~seqshape.model.engine.BACKENDS`):
             ``"torch"`` (the reference: the model's own forward pass), ``"onnx"`` (ONNX
             Runtime, ``pip install 'seqshape[fast]'``), ``"torch-lean"`` (the same step
-            function in PyTorch), ``"onnx-int8"`` (opt-in: ONNX Runtime with the shape decoder
-            and, for many tracks a pass, the encoder's last layers in int8; 1.6-1.9x the
-            100-track throughput of ``"onnx"``, about 1.2x its single-track speed, estimates
-            moved less than by 1 cm of noise on the points),
-            or ``"auto"``: the first of
-            :data:`~seqshape.model.engine.AUTO_ORDER` installed and passing
-            :func:`check_backend` here (a warning names any passed over), else ``"torch"``.
+            function in PyTorch), ``"onnx-int8"`` (ONNX Runtime with the shape decoder and,
+            for many tracks a pass, the encoder's last layers in int8, quantised per track;
+            1.5-1.6x the 100-track throughput of ``"onnx"``, about its single-track speed,
+            estimates moved less than by 1 cm of noise on the points),
+            ``"auto"``: the first of :data:`~seqshape.model.engine.AUTO_ORDER`
+            (``"onnx-int8"``, ``"onnx"``, ``"torch-lean"``) installed and passing
+            :func:`check_backend` here (a warning names any passed over), else ``"torch"``;
+            or ``"auto-float"``: the same over the float32 ones
+            (:data:`~seqshape.model.engine.FLOAT_ORDER`).
             The loaders default to ``"auto"``, this constructor to the reference.
         refiner: a :class:`~seqshape.model.placement.PlacementRefiner` applied to every
             estimate of a frame with points (the frame's points re-read in the estimated box
@@ -268,7 +272,8 @@ class Estimator:
         self._buffer = np.zeros(0, np.float32)  # reused input points of the fast backends
         self._states: dict[str, _TrackState] = {}
         self._engine = None
-        self.backend = select_backend(self.model, self._check) if backend == "auto" else backend
+        self.backend = (select_backend(self.model, self._check, AUTO_ORDERS[backend])
+                        if backend in AUTO_ORDERS else backend)
         if self.backend == "torch":
             self._engine = None  # "auto" may have tried engines that did not pass
             if self.threads is not None:

@@ -12,8 +12,8 @@ on disk under a key made of exactly these, and read back instead of exported.
   ``~/.cache/seqshape/onnx``. ``SEQSHAPE_CACHE_DIR=none`` (or ``off``) turns the cache off.
 * Key (:func:`graph_key`): SHA-256 of the graph's kind, every weight tensor (name, dtype, shape,
   bytes), the model's kind and configuration, the source of the modules that define the
-  exported function (``network.py``, ``engine.py``, ``transforms.py``), and the versions of
-  seqshape, PyTorch, ``onnx`` and ONNX Runtime. A change of any of them is a new key, so a
+  exported function (``network.py``, ``engine.py``, ``int8.py``, ``transforms.py``,
+  ``placement.py``), and the versions of seqshape, PyTorch, ``onnx`` and ONNX Runtime. A change of any of them is a new key, so a
   stale graph is never read.
 * File: ``<key>.onnx`` holding the graph's bytes followed by their SHA-256 digest (32 bytes),
   written atomically (:func:`seqshape._io.atomic_write_bytes`). A file whose digest does not
@@ -52,7 +52,7 @@ MAX_BYTES = 1 << 29
 FORMAT = b"seqshape-onnx-graph/1"
 PREFIX = "seqshape-graph-"  # the cache's file names: PREFIX + key + ".onnx"
 _DIGEST = 32
-_SOURCES = ("network.py", "engine.py", "transforms.py", "placement.py")
+_SOURCES = ("network.py", "engine.py", "int8.py", "transforms.py", "placement.py")
 _warned: set[str] = set()
 
 

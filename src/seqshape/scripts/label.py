@@ -34,6 +34,7 @@ import argparse
 import sys
 from collections import deque
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import seqshape.scripts.export_tracks as export_tracks
@@ -164,6 +165,9 @@ def _targets(args, name: str | None, cameras: list[str]) -> dict[str, tuple]:
 
 
 def _settings(args, log, cfg: LabelConfig, camera: str, weights: str | None) -> dict:
+    if cfg.backend == "auto" and args.mode != "gt-accumulation":  # int8 or float32: ask
+        cfg = replace(cfg, backend=_estimator(args.mode, args.checkpoint, args.backend,
+                                              args.placement, args.max_points).backend)
     return label_settings(cfg, log, camera, max_frames=args.max_frames, weights=weights)
 
 

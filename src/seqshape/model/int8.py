@@ -1,0 +1,221 @@
+"""Int8 matrix products of an exported step graph, quantised per track (``"onnx-int8"``).
+
+:func:`quantize_graph` turns the float32 matrix products (``Gemm``, ``MatMul``) of chosen
+layers of an ONNX graph into ONNX Runtime's ``MatMulIntegerToFloat`` (its fused int8 product,
+``com.microsoft`` domain), so the graph then runs on ONNX Runtime only:
+
+* **Weights**: int8, symmetric, one scale per output channel (``max |w| / 127``).
+* **Inputs**: 7 bits in a uint8 (:data:`POS_LEVELS`: no int16 saturation on any x86 CPU),
+  quantised at run time with a scale that depends on **one track's values only**. ONNX
+  Runtime's own dynamic quantisation (``quantize_dynamic``) takes one scale over the whole
+  input tensor, i.e. over every track of the pass, so that a track's estimate moved with the
+  other tracks it was batched with (by up to 5 cm on a shape point; docs/model.md, "Sixth
+  round: int8 per track"). Here:
+
+  - a row of a product is one track (the decoders, the recurrent layers: inputs ``(B, K)``):
+    the row is scaled by its own largest magnitude (``x / max |x|``, then 127 steps over
+    ``[0, 1]`` after a ReLU, else 126 over ``[-1, 1]`` around the zero point 64), and the
+    product's row is scaled back;
+  - the encoder's per-point layer that ends in the max-pool (``Reshape`` of a ReLU's
+    ``(B, N, K)`` -> product -> ``Reshape (B, N, F)`` -> ``ReduceMax`` over the points): one
+    scale per track over its ``N x K`` inputs (``QuantizeLinear`` along axis 0, no extra pass
+    over the points), and since the scale is positive and the bias the same for every point,
+    both are applied after the max-pool, to ``(B, F)`` only. Padded rows are copies of real
+    ones, so the scale is that of the track's own points;
+  - any other product (only with every layer quantised): one scale per row (per point).
+
+  A track's result therefore does not depend on the other tracks of its pass (tested: equal
+  to 1e-6 whichever tracks share it), and each track's inputs use the whole quantised range.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from seqshape.errors import require
+
+#: Opset of ONNX Runtime's contrib operators (``MatMulIntegerToFloat``).
+MS_DOMAIN = "com.microsoft"
+_EPS = 1e-30  # a row of zeros keeps a positive scale (its products are 0 either way)
+#: Largest magnitude of a quantised weight (int8, symmetric).
+WEIGHT_LEVELS = 127
+#: Quantised inputs (uint8) use 7 bits: 0 .. POS_LEVELS after a ReLU, ZP +- SIGNED_LEVELS
+#: otherwise. So that no sum of two adjacent products exceeds int16 (2 x 127 x 127 = 32,258):
+#: x86 CPUs without VNNI multiply uint8 by int8 with ``vpmaddubsw``, which saturates there
+#: (ONNX Runtime's documentation of its quantisation, "saturation"); with 8-bit inputs the
+#: results would then depend on the CPU. Measured: as close to float32 as 8-bit inputs for the
+#: sequential model, 1.3x the baseline's deviations; 7-bit weights instead doubled them
+#: (docs/model.md, "Sixth round: int8 per track").
+POS_LEVELS, SIGNED_LEVELS, ZP = 127, 63, 64
+
+
+def quantize_graph(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes:
+    """``graph`` (ONNX bytes) with the matrix products of ``layers`` (node-name prefixes
+    ``/<layer>/``; None: every product with a constant weight) in int8, per track (module
+    doc). Raises :class:`RuntimeError` when ``layers`` names no product."""
+    onnx = require("onnx", "the int8 inference backend", "seqshape[fast]")
+    helper, numpy_helper = onnx.helper, onnx.numpy_helper
+    proto = onnx.load_from_string(graph)
+    g = proto.graph
+    weights = {t.name: t for t in g.initializer}
+    producer = {o: n for n in g.node for o in n.output}
+    consumers: dict[str, list] = {}
+    for n in g.node:
+        for i in n.input:
+            consumers.setdefault(i, []).append(n)
+
+    def chosen(n) -> bool:
+        return (n.op_type in ("Gemm", "MatMul") and len(n.input) >= 2 and n.input[1] in weights
+                and (layers is None or any(n.name.startswith(f"/{name}/") for name in layers)))
+
+    targets = [n for n in g.node if chosen(n)]
+    if not targets:
+        raise RuntimeError(f"int8 quantisation: no matrix product in the layers {layers}")
+    new_init: list = []
+    replace: dict[str, list] = {}  # node name -> the nodes in its place
+    after: dict[str, list] = {}  # node name -> nodes to put after it
+    renamed: dict[str, str] = {}  # an output renamed by a rewrite: old -> new
+
+    def const(name: str, value) -> str:
+        new_init.append(numpy_helper.from_array(np.asarray(value), name))
+        return name
+
+    one = const("int8/one", np.array(1.0, np.float32))
+    eps = const("int8/eps", np.array(_EPS, np.float32))
+    axis1 = const("int8/axis1", np.array([1], np.int64))
+    flat = const("int8/flat", np.array([0, -1], np.int64))
+    zp_u8 = {0: const("int8/zp0", np.array(0, np.uint8)),
+             ZP: const("int8/zp", np.array(ZP, np.uint8))}
+    zp_w = const("int8/zp_w", np.array(0, np.int8))
+    step = {"pos": const("int8/pos", np.array(1 / POS_LEVELS, np.float32)),
+            "signed": const("int8/signed", np.array(1 / SIGNED_LEVELS, np.float32))}
+
+    for k, n in enumerate(targets):
+        w, bias = _weight_and_bias(n, weights, numpy_helper)
+        scale_w = np.abs(w).max(axis=0) / WEIGHT_LEVELS  # (N,) per output channel; w is (K, N)
+        scale_w = np.where(scale_w > 0, scale_w, 1.0).astype(np.float32)
+        wq = np.clip(np.rint(w / scale_w), -WEIGHT_LEVELS, WEIGHT_LEVELS).astype(np.int8)
+        p = f"int8/{k}"
+        wq_name, sw_name = const(f"{p}/w", wq), const(f"{p}/w_scale", scale_w)
+        x, y = n.input[0], n.output[0]
+        src = producer.get(x)
+        pooled = _pooled_encoder_layer(n, src, producer, consumers)
+        if pooled is not None:
+            relu, pool = pooled
+            # quantising y to uint8 with zero point 0 clips its negatives as relu(y) would, and
+            # max(relu(y)) = max(max(y), 0): the ReLU pass is left out when nothing else reads it
+            alone = len(consumers[relu.output[0]]) == 1
+            x3 = relu.input[0] if alone else relu.output[0]
+            if alone:
+                replace[relu.name] = []
+                replace[src.name] = []
+            nodes = [  # one scale per track over its (N, K) inputs
+                helper.make_node("Reshape", [x3, flat], [f"{p}/rows"]),
+                helper.make_node("ReduceMax", [f"{p}/rows"], [f"{p}/max"], axes=[1], keepdims=0),
+                helper.make_node("Max", [f"{p}/max", eps], [f"{p}/max+"]),
+                helper.make_node("Mul", [f"{p}/max+", step["pos"]], [f"{p}/scale"]),
+                helper.make_node("QuantizeLinear", [x3, f"{p}/scale"], [f"{p}/q3"], axis=0),
+                helper.make_node("Reshape", [f"{p}/q3", src.input[1]], [f"{p}/q"]),
+                helper.make_node("MatMulIntegerToFloat", [f"{p}/q", wq_name, one, sw_name,
+                                 zp_u8[0], zp_w], [y], domain=MS_DOMAIN, name=f"{p}/matmul")]
+            replace[n.name] = nodes
+            pooled_out = pool.output[0]
+            renamed[pooled_out] = f"{p}/pooled"
+            tail = [helper.make_node("Unsqueeze", [f"{p}/scale", axis1], [f"{p}/scale2"]),
+                    helper.make_node("Mul", [f"{p}/pooled", f"{p}/scale2"],
+                                     [f"{p}/pooled_scaled" if bias is not None else pooled_out])]
+            if bias is not None:
+                tail.append(helper.make_node("Add", [f"{p}/pooled_scaled",
+                                                     const(f"{p}/bias", bias)], [pooled_out]))
+            after[pool.name] = tail
+            continue
+        nonneg = src is not None and src.op_type == "Relu"
+        levels, zp = ("pos", 0) if nonneg else ("signed", ZP)
+        nodes = []
+        mag = x
+        if not nonneg:
+            nodes.append(helper.make_node("Abs", [x], [f"{p}/abs"]))
+            mag = f"{p}/abs"
+        nodes += [  # one scale per row
+            helper.make_node("ReduceMax", [mag], [f"{p}/max"], axes=[-1], keepdims=1),
+            helper.make_node("Max", [f"{p}/max", eps], [f"{p}/max+"]),
+            helper.make_node("Div", [x, f"{p}/max+"], [f"{p}/unit"]),
+            helper.make_node("QuantizeLinear", [f"{p}/unit", step[levels], zp_u8[zp]], [f"{p}/q"]),
+            helper.make_node("MatMulIntegerToFloat", [f"{p}/q", wq_name, step[levels], sw_name,
+                             zp_u8[zp], zp_w], [f"{p}/unscaled"], domain=MS_DOMAIN,
+                             name=f"{p}/matmul"),
+            helper.make_node("Mul", [f"{p}/unscaled", f"{p}/max+"],
+                             [f"{p}/scaled" if bias is not None else y])]
+        if bias is not None:
+            nodes.append(helper.make_node("Add", [f"{p}/scaled", const(f"{p}/bias", bias)], [y]))
+        replace[n.name] = nodes
+
+    out = []
+    for n in g.node:
+        if n.name in replace:
+            out += replace[n.name]
+            continue
+        for i, name in enumerate(n.output):
+            if name in renamed:
+                n.output[i] = renamed[name]
+        out.append(n)
+        out += after.get(n.name, [])
+    del g.node[:]
+    g.node.extend(out)
+    g.initializer.extend(new_init)
+    if not any(o.domain == MS_DOMAIN for o in proto.opset_import):
+        proto.opset_import.append(helper.make_opsetid(MS_DOMAIN, 1))
+    _drop_unused_initializers(g)
+    return proto.SerializeToString()
+
+
+def _weight_and_bias(n, weights: dict, numpy_helper) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(w (K, N) float32, bias (N,) or None)`` of a ``Gemm`` or ``MatMul`` node whose
+    weight is a constant (a ``Gemm``'s bias too, and alpha = beta = 1, no transA)."""
+    w = numpy_helper.to_array(weights[n.input[1]]).astype(np.float32)
+    if n.op_type == "MatMul":
+        if w.ndim != 2:
+            raise RuntimeError(f"int8 quantisation: {n.name}'s weight is not a matrix")
+        return w, None
+    attrs = {a.name: a for a in n.attribute}
+    get = {k: (a.f if a.type == a.FLOAT else a.i) for k, a in attrs.items()}
+    if get.get("alpha", 1.0) != 1.0 or get.get("beta", 1.0) != 1.0 or get.get("transA", 0):
+        raise RuntimeError(f"int8 quantisation: {n.name} is not a plain x W + b")
+    trans_b = bool(get.get("transB", 0))
+    bias = None
+    if len(n.input) > 2 and n.input[2]:
+        if n.input[2] not in weights:
+            raise RuntimeError(f"int8 quantisation: {n.name}'s bias is not a constant")
+        bias = numpy_helper.to_array(weights[n.input[2]]).astype(np.float32).reshape(-1)
+    return (w.T.copy() if trans_b else w), bias
+
+
+def _pooled_encoder_layer(n, src, producer: dict, consumers: dict):
+    """``(relu, pool)`` (the nodes) when ``n`` is the encoder's per-point product that
+    ends in the max-pool: ``Reshape(Relu (B, N, K)) -> n -> Reshape (B, N, F) -> ReduceMax
+    over axis 1`` (keepdims 0), each intermediate used once; else None."""
+    if src is None or src.op_type != "Reshape":
+        return None
+    relu = producer.get(src.input[0])
+    if relu is None or relu.op_type != "Relu" or len(consumers.get(src.output[0], [])) != 1:
+        return None
+    after = consumers.get(n.output[0], [])
+    if len(after) != 1 or after[0].op_type != "Reshape":
+        return None
+    pool = consumers.get(after[0].output[0], [])
+    if len(pool) != 1 or pool[0].op_type != "ReduceMax":
+        return None
+    attrs = {a.name: a for a in pool[0].attribute}
+    axes = list(attrs["axes"].ints) if "axes" in attrs else None
+    keep = attrs["keepdims"].i if "keepdims" in attrs else 1
+    if axes != [1] or keep != 0 or len(pool[0].input) != 1:
+        return None
+    return relu, pool[0]
+
+
+def _drop_unused_initializers(g) -> None:
+    """Remove the float weights the rewrite left without a reader."""
+    used = {i for n in g.node for i in n.input} | {o.name for o in g.output}
+    keep = [t for t in g.initializer if t.name in used]
+    del g.initializer[:]
+    g.initializer.extend(keep)
