@@ -361,8 +361,17 @@ def test_int8_quantises_the_shape_decoder_and_the_encoders_last_layers():
     one = onnx.load_from_string(quantize_onnx(export_onnx(net, one_track=True), INT8_LAYERS))
     assert [n.op_type for n in one.graph.node].count("MatMulIntegerToFloat") == \
         len(net.shape_decoder) // 2 + 1
-    every = onnx.load_from_string(quantize_onnx(graph, None))
+    every_bytes = quantize_onnx(graph, None)
+    every = onnx.load_from_string(every_bytes)
     assert [n.op_type for n in every.graph.node].count("MatMulIntegerToFloat") == float_products
+    ort = pytest.importorskip("onnxruntime")  # every product int8 (bias-free ones too) runs
+    sess = ort.InferenceSession(every_bytes, providers=["CPUExecutionProvider"])
+    feed = engine_module.example_inputs(net, batch=3, points=7).arrays()
+    outs = sess.run(None, {i.name: feed[i.name] for i in sess.get_inputs()})
+    ref = ort.InferenceSession(graph, providers=["CPUExecutionProvider"]).run(
+        None, {i.name: feed[i.name] for i in sess.get_inputs()})
+    assert all(np.isfinite(o).all() for o in outs[:2])
+    assert np.abs(outs[1][:, :3] - ref[1][:, :3]).max() < 0.1 * np.abs(ref[1][:, :3]).max()
     with pytest.raises(RuntimeError, match="no matrix product in the layers"):
         quantize_onnx(graph, ("no_such_layer",))
     fast, ref = Estimator(net, backend="onnx-int8"), Estimator(net, backend="torch")
