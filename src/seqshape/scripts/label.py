@@ -39,6 +39,7 @@ from pathlib import Path
 
 import seqshape.scripts.export_tracks as export_tracks
 from seqshape._io import contained_path, safe_stem
+from seqshape._malloc import keep_freed_memory
 from seqshape._runner import WorkerPool
 from seqshape._threads import limit_openblas
 from seqshape.amodal.labeler import (
@@ -320,8 +321,10 @@ def _ready(started) -> bool:
 def _worker_start() -> None:
     """Start of a drawing worker: nothing to load (unpickling this function has imported the
     labeller, OpenCV and SciPy: while the parent imports PyTorch and loads the estimator);
-    OpenBLAS held to one thread (:mod:`seqshape._threads`)."""
+    OpenBLAS held to one thread (:mod:`seqshape._threads`), freed memory kept for reuse
+    (:mod:`seqshape._malloc`)."""
     limit_openblas(1)
+    keep_freed_memory()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -336,6 +339,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--workers must be >= 1, got {args.workers}")
     names = sequences_of(args)
     LabelConfig(**{**config_kwargs(args, FIELDS), "instances": None})  # options checked first
+    keep_freed_memory()  # frames reuse their arrays' pages (seqshape._malloc)
     jobs = [None] if names is None else names
     weights = None
     if args.resume:
