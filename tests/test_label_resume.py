@@ -322,6 +322,14 @@ def test_sc_gt_resume_with_the_shipped_weights(root, tmp_path, monkeypatch, caps
     assert main([*cmd, "--max-points", "128", "--resume"]) == 1
     assert "max_points: None there vs 128 now" in capsys.readouterr().err
     assert labelled == [] and label_cli._ESTIMATOR == {} and _files(out) == before
+    # "auto" is recorded as what it chose here: int8 (refused against float32 labels) where
+    # its check passes, else a float32 backend (resumed); either way nothing is relabelled
+    code = main([*cmd[:-1], "auto", "--resume"])
+    chosen = label_cli._ESTIMATOR["est"].backend
+    assert code == (1 if chosen == "onnx-int8" else 0), chosen
+    if chosen == "onnx-int8":
+        assert "inference: 'float32' there vs 'int8' now" in capsys.readouterr().err
+    assert labelled == [] and _files(out) == before
 
 
 def test_placement_refiner_counts_by_its_content(tmp_path):
