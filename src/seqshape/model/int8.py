@@ -57,10 +57,11 @@ def quantize_graph(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes
     helper, numpy_helper = onnx.helper, onnx.numpy_helper
     proto = onnx.load_from_string(graph)
     g = proto.graph
+    nodes_in = list(g.node)  # one set of node objects, kept alive: id() names a node below
     weights = {t.name: t for t in g.initializer}
-    producer = {o: n for n in g.node for o in n.output}
+    producer = {o: n for n in nodes_in for o in n.output}
     consumers: dict[str, list] = {}
-    for n in g.node:
+    for n in nodes_in:
         for i in n.input:
             consumers.setdefault(i, []).append(n)
 
@@ -68,12 +69,12 @@ def quantize_graph(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes
         return (n.op_type in ("Gemm", "MatMul") and len(n.input) >= 2 and n.input[1] in weights
                 and (layers is None or any(n.name.startswith(f"/{name}/") for name in layers)))
 
-    targets = [n for n in g.node if chosen(n)]
+    targets = [n for n in nodes_in if chosen(n)]
     if not targets:
         raise RuntimeError(f"int8 quantisation: no matrix product in the layers {layers}")
     new_init: list = []
-    replace: dict[str, list] = {}  # node name -> the nodes in its place
-    after: dict[str, list] = {}  # node name -> nodes to put after it
+    replace: dict[int, list] = {}  # id(node) -> the nodes in its place (names may be empty)
+    after: dict[int, list] = {}  # id(node) -> nodes to put after it
     renamed: dict[str, str] = {}  # an output renamed by a rewrite: old -> new
 
     def const(name: str, value) -> str:
@@ -107,8 +108,8 @@ def quantize_graph(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes
             alone = len(consumers[relu.output[0]]) == 1
             x3 = relu.input[0] if alone else relu.output[0]
             if alone:
-                replace[relu.name] = []
-                replace[src.name] = []
+                replace[id(relu)] = []
+                replace[id(src)] = []
             nodes = [  # one scale per track over its (N, K) inputs
                 helper.make_node("Reshape", [x3, flat], [f"{p}/rows"]),
                 helper.make_node("ReduceMax", [f"{p}/rows"], [f"{p}/max"], axes=[1], keepdims=0),
@@ -118,7 +119,7 @@ def quantize_graph(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes
                 helper.make_node("Reshape", [f"{p}/q3", src.input[1]], [f"{p}/q"]),
                 helper.make_node("MatMulIntegerToFloat", [f"{p}/q", wq_name, one, sw_name,
                                  zp_u8[0], zp_w], [y], domain=MS_DOMAIN, name=f"{p}/matmul")]
-            replace[n.name] = nodes
+            replace[id(n)] = nodes
             pooled_out = pool.output[0]
             renamed[pooled_out] = f"{p}/pooled"
             tail = [helper.make_node("Unsqueeze", [f"{p}/scale", axis1], [f"{p}/scale2"]),
@@ -127,7 +128,7 @@ def quantize_graph(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes
             if bias is not None:
                 tail.append(helper.make_node("Add", [f"{p}/pooled_scaled",
                                                      const(f"{p}/bias", bias)], [pooled_out]))
-            after[pool.name] = tail
+            after[id(pool)] = tail
             continue
         nonneg = src is not None and src.op_type == "Relu"
         levels, zp = ("pos", 0) if nonneg else ("signed", ZP)
@@ -148,20 +149,25 @@ def quantize_graph(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes
                              [f"{p}/scaled" if bias is not None else y])]
         if bias is not None:
             nodes.append(helper.make_node("Add", [f"{p}/scaled", const(f"{p}/bias", bias)], [y]))
-        replace[n.name] = nodes
+        replace[id(n)] = nodes
 
     out = []
-    for n in g.node:
-        if n.name in replace:
-            out += replace[n.name]
+    for n in nodes_in:
+        if id(n) in replace:
+            out += replace[id(n)]
             continue
         for i, name in enumerate(n.output):
             if name in renamed:
                 n.output[i] = renamed[name]
         out.append(n)
-        out += after.get(n.name, [])
+        out += after.get(id(n), [])
+    kept = []
+    for n in out:  # copies: the old nodes' objects may share storage with the field cleared next
+        c = onnx.NodeProto()
+        c.CopyFrom(n)
+        kept.append(c)
     del g.node[:]
-    g.node.extend(out)
+    g.node.extend(kept)
     g.initializer.extend(new_init)
     if not any(o.domain == MS_DOMAIN for o in proto.opset_import):
         proto.opset_import.append(helper.make_opsetid(MS_DOMAIN, 1))
