@@ -30,10 +30,10 @@ from seqshape.model.engine import (
     export_onnx,
     length_buckets,
     pack_frames,
-    quantize_onnx,
 )
 from seqshape.model.estimator import noise_quantiles
 from seqshape.model.heading import wrap_angle
+from seqshape.model.int8 import quantize_onnx
 from seqshape.testing import box_surface
 
 pytest.importorskip("onnxruntime")

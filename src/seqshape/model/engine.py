@@ -58,7 +58,7 @@ from torch import nn
 from seqshape.errors import ConfigError, MissingDependencyError, require
 from seqshape.geometry import box_surface
 from seqshape.model.graph_cache import cached_graph
-from seqshape.model.int8 import quantize_graph
+from seqshape.model.int8 import quantize_onnx
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet, motion_features
 from seqshape.model.transforms import place_points
 
@@ -550,17 +550,6 @@ def _session_options(ort, threads: int | None, spin: bool = False):
         opts.add_session_config_entry("session.force_spinning_stop", "1")
     opts.log_severity_level = 3
     return opts
-
-
-def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes:
-    """``graph`` (ONNX bytes of :func:`export_onnx`) with the matrix products of ``layers``
-    (submodule names of :class:`StepGraph`, e.g. ``"shape_decoder"``; None: every one) in
-    int8: weights per output channel, inputs quantised at run time per track, so that a
-    track's estimate does not depend on the other tracks of its pass
-    (:func:`seqshape.model.int8.quantize_graph`; ONNX Runtime's ``MatMulIntegerToFloat``).
-
-    Raises :class:`RuntimeError` when ``layers`` names no matrix product."""
-    return quantize_graph(graph, layers)
 
 
 def export_onnx(model: ShapePoseNet, one_track: bool = False) -> bytes:

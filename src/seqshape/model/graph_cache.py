@@ -13,8 +13,8 @@ on disk under a key made of exactly these, and read back instead of exported.
 * Key (:func:`graph_key`): SHA-256 of the graph's kind, every weight tensor (name, dtype, shape,
   bytes), the model's kind and configuration, the source of the modules that define the
   exported function (``network.py``, ``engine.py``, ``int8.py``, ``transforms.py``,
-  ``placement.py``), and the versions of seqshape, PyTorch, ``onnx`` and ONNX Runtime. A change of any of them is a new key, so a
-  stale graph is never read.
+  ``placement.py``), and the versions of seqshape, PyTorch, ``onnx`` and ONNX Runtime. A
+  change of any of them is a new key, so a stale graph is never read.
 * File: ``<key>.onnx`` holding the graph's bytes followed by their SHA-256 digest (32 bytes),
   written atomically (:func:`seqshape._io.atomic_write_bytes`). A file whose digest does not
   match (a damaged disk, a foreign file) is reported with a warning naming it, and the graph is

@@ -1,6 +1,6 @@
 """Int8 matrix products of an exported step graph, quantised per track (``"onnx-int8"``).
 
-:func:`quantize_graph` turns the float32 matrix products (``Gemm``, ``MatMul``) of chosen
+:func:`quantize_onnx` turns the float32 matrix products (``Gemm``, ``MatMul``) of chosen
 layers of an ONNX graph into ONNX Runtime's ``MatMulIntegerToFloat`` (its fused int8 product,
 ``com.microsoft`` domain), so the graph then runs on ONNX Runtime only:
 
@@ -49,10 +49,13 @@ WEIGHT_LEVELS = 127
 POS_LEVELS, SIGNED_LEVELS, ZP = 127, 63, 64
 
 
-def quantize_graph(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes:
-    """``graph`` (ONNX bytes) with the matrix products of ``layers`` (node-name prefixes
-    ``/<layer>/``; None: every product with a constant weight) in int8, per track (module
-    doc). Raises :class:`RuntimeError` when ``layers`` names no product."""
+def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None) -> bytes:
+    """``graph`` (ONNX bytes, e.g. of :func:`seqshape.model.engine.export_onnx`) with the
+    matrix products of ``layers`` (node-name prefixes ``/<layer>/``, the submodule names of
+    the step graph, e.g. ``"shape_decoder"``; None: every product with a constant weight) in
+    int8, inputs quantised per track (module doc), so that a track's estimate does not depend
+    on the other tracks of its pass. Raises :class:`RuntimeError` when ``layers`` names no
+    product."""
     onnx = require("onnx", "the int8 inference backend", "seqshape[fast]")
     helper, numpy_helper = onnx.helper, onnx.numpy_helper
     proto = onnx.load_from_string(graph)
