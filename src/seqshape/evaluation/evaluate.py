@@ -61,7 +61,7 @@ class EvaluateConfig:
         (off: the points alone, and the heading step then never acts; docs/evaluation.md).
     backend: inference backend of both networks (seqshape.model.engine.BACKENDS; 'auto-float':
         the fastest float32 one that passes its check against PyTorch on this machine, so that
-        the metrics are the model's own; 'auto' may take int8, within 0.4 % of them;
+        the metrics are the model's own; 'auto' may take int8, within 0.5 % of them;
         docs/model.md).
     refiner: placement refiner of both networks (seqshape.model.placement): 'pretrained' (the
         shipped one, trained on the shipped networks' estimates), a refiner file, or 'none' (the

@@ -226,7 +226,7 @@ class Estimator:
             Runtime, ``pip install 'seqshape[fast]'``), ``"torch-lean"`` (the same step
             function in PyTorch), ``"onnx-int8"`` (ONNX Runtime with the shape decoder and,
             for many tracks a pass, the encoder's last layers in int8, quantised per track;
-            1.5-1.6x the 100-track throughput of ``"onnx"``, about its single-track speed,
+            1.4-1.5x the 100-track throughput of ``"onnx"``, about its single-track speed,
             estimates moved less than by 1 cm of noise on the points),
             ``"auto"``: the first of :data:`~seqshape.model.engine.AUTO_ORDER`
             (``"onnx-int8"``, ``"onnx"``, ``"torch-lean"``) installed and passing
