@@ -19,6 +19,7 @@ from seqshape.data.kins import (
     kins_annotation,
     occlusion_order,
     read_kins,
+    rle_to_mask,
     write_coco_instances,
     write_kins,
 )
@@ -501,6 +502,8 @@ def _same_prepared(a, b) -> None:
     assert sorted(a.unsupported) == sorted(b.unsupported)
     for f, rows in a.unsupported.items():
         for (m, ann, plane), (m2, ann2, plane2) in zip(rows, b.unsupported[f], strict=True):
+            if m2 is None:  # left out by a worker: the annotation's own mask, decoded again
+                m2 = rle_to_mask(ann2["segmentation"])
             assert np.array_equal(m, m2) and m2.dtype == bool and ann == ann2
             assert all(np.array_equal(x, y) for x, y in zip(plane, plane2, strict=True))
 
@@ -535,3 +538,190 @@ def test_sc_seg_frames_segmented_apart_give_the_same_tracks(kitti, tmp_path, mon
     # the runs of frames may be cut anywhere
     monkeypatch.setattr(labeler, "CHUNK_FRAMES", 4)
     _same_prepared(one, labeler.submit_prepare(_PicklingPool(), seq, cfg, "image_02").get())
+
+
+# ---------------------------------------------------------------- the work spread over a pool
+
+
+def _far_car_instances(kitti, tmp_path):
+    """A copy of the KITTI fixture whose 2D instances add a far car without LiDAR points
+    (sc-seg's mask-only labels) in frames 1..N-1."""
+    import json
+    import shutil
+
+    root = tmp_path / "kitti"
+    shutil.copytree(kitti, root)
+    far = hull(np.array([70.0, 30.0, -H + SIZE[2] / 2, 0.0]), kitti_default_calib())
+    path = root / "instances_2d" / "0000.json"
+    doc = json.loads(path.read_text())
+    for t in range(1, N_FRAMES):
+        doc["annotations"].append(coco_annotation(1000 + t, t, 4, far, score=0.9))
+    path.write_text(json.dumps(doc))
+    return root
+
+
+@pytest.fixture
+def _torch_threads():
+    """Restores PyTorch's thread count (an estimator loaded as a worker's sets it to 1)."""
+    import torch
+
+    n = torch.get_num_threads()
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.mark.parametrize("mode", ["sc-gt", "sc-seg"])
+def test_tracks_estimated_in_a_pool_give_the_same_labels(kitti, tmp_path, monkeypatch, mode,
+                                                         _torch_threads):
+    """The shipped network's offline estimates made by the pool's workers (every track a task
+    of its own, through pickling; the estimator loaded there from its spec) and the mask-only
+    labels made where the frames are drawn: the same label file as one process."""
+    from seqshape.amodal import labeler
+
+    root = _far_car_instances(kitti, tmp_path)
+    seq = KittiTrackingSequence(root, "0000")
+    cfg = LabelConfig(mode=mode, backend="torch")
+    est = labeler.load_estimator(None, "torch")
+    spec = labeler.estimator_spec(est)
+    assert spec == labeler.EstimatorSpec(None, "torch", "pretrained", None)
+    one = labeler.label_log(seq, cfg, estimator=est)
+    monkeypatch.setattr(labeler, "CHUNKS_PER_WORKER", 8)  # a task per track
+    submitted = []
+
+    class Recording(_PicklingPool):
+        def submit(self, fn, unit):
+            submitted.append(fn.__name__)
+            return super().submit(fn, unit)
+
+    monkeypatch.setattr(labeler, "_WORKER_ESTIMATOR", {})
+    for given in (est, spec):
+        submitted.clear()
+        pooled = labeler.label_log(seq, cfg, estimator=given, pool=Recording())
+        write_labels(tmp_path / "one.json", one)
+        write_labels(tmp_path / "pooled.json", pooled)
+        assert (tmp_path / "one.json").read_bytes() == (tmp_path / "pooled.json").read_bytes()
+        assert submitted.count("complete_chunk") == 2  # the fixture's two cars
+    assert list(labeler._WORKER_ESTIMATOR) == [spec]  # the "worker" loaded it once
+    if mode == "sc-seg":  # the far car's mask-only labels were made by the "workers"
+        assert sum("track_id" not in a for a in one.annotations) == N_FRAMES - 1
+    # an estimator not made by load_estimator stays here: nothing to load in a worker
+    submitted.clear()
+    labeler.label_log(seq, cfg, estimator=OracleEstimator(), pool=Recording())
+    assert "complete_chunk" not in submitted
+
+
+def test_track_chunks_cover_every_track_once_in_balanced_groups():
+    from seqshape.amodal.labeler import CHUNKS_PER_WORKER, track_chunks
+
+    rng = np.random.default_rng(0)
+    for workers in (1, 2, 4):
+        for n in (0, 1, 5, 40):
+            frames = [int(f) for f in rng.integers(1, 200, n)]
+            groups = track_chunks(frames, workers)
+            assert sorted(i for g in groups for i in g) == list(range(n))
+            assert all(g == sorted(g) and g for g in groups)
+            assert len(groups) == min(n, CHUNKS_PER_WORKER * workers)
+            loads = [sum(frames[i] + 4 for i in g) for g in groups]
+            assert loads == sorted(loads, reverse=True)  # the heaviest first
+            if n:  # greedy longest-first: no group exceeds the lightest by more than a track
+                assert loads[0] - loads[-1] <= max(frames) + 4
+            assert groups == track_chunks(frames, workers)
+    assert track_chunks([10, 300, 10, 10], 1) == [[1], [0, 3], [2]]
+
+
+def test_gt_crops_made_apart_give_the_same_tracks(kitti, monkeypatch):
+    """The gt modes' crops, one frame (or four) per task through pickling, joined here: the
+    same tracks as :func:`prepare_tracks` in one process."""
+    from seqshape.amodal import labeler
+
+    seq = KittiTrackingSequence(kitti, "0000")
+    cfg = LabelConfig(mode="sc-gt")
+    one = labeler.prepare_tracks(seq, cfg, "image_02")
+    for size in (1, 4):
+        monkeypatch.setattr(labeler, "CHUNK_FRAMES", size)
+        job = labeler.submit_prepare(_PicklingPool(), seq, cfg, "image_02")
+        assert len(job.tasks) == -(-N_FRAMES // size)
+        apart = job.get()
+        assert [t.track_id for t in apart.tracks] == [t.track_id for t in one.tracks]
+        for a, b in zip(one.tracks, apart.tracks, strict=True):
+            assert a.meta == b.meta and np.array_equal(a.poses, b.poses)
+            assert np.array_equal(a.size, b.size)
+            assert all(np.array_equal(p, q) and p.dtype == q.dtype
+                       for p, q in zip(a.points, b.points, strict=True))
+        for a, b in zip(one.inputs, apart.inputs, strict=True):
+            assert (a.track_id, a.frames, a.category_id, a.label_id) == (
+                b.track_id, b.frames, b.category_id, b.label_id)
+
+
+def test_a_log_goes_to_the_workers_pickled_once(kitti, monkeypatch):
+    import pickle
+
+    from seqshape.amodal import labeler
+
+    monkeypatch.setattr(labeler, "_SHARED", {})
+    monkeypatch.setattr(labeler, "_WORKER_LOGS", {})
+    seq = KittiTrackingSequence(kitti, "0000")
+    ref = labeler.shared_log(seq)
+    assert labeler.shared_log(seq) is ref  # one pickle per log
+    sent = pickle.loads(pickle.dumps(ref))  # what a task carries: the bytes, not the objects
+    got = labeler.worker_log(sent)
+    assert got is not seq and got.frames == seq.frames and got.name == seq.name
+    assert [b.track_id for b in got.boxes(2)] == [b.track_id for b in seq.boxes(2)]
+    assert labeler.worker_log(pickle.loads(pickle.dumps(ref))) is got  # unpickled once
+    assert labeler.worker_log(seq) is seq
+    for _ in range(labeler._LOGS_KEPT):  # a few logs at a time: the oldest goes
+        labeler.worker_log(labeler.SharedLog(seq))
+    assert ref.key not in labeler._WORKER_LOGS
+    assert len(labeler._WORKER_LOGS) == labeler._LOGS_KEPT
+
+
+def test_box_masks_give_the_overlaps_of_the_full_masks():
+    from seqshape.amodal.association import BoxMask, _mask_iou, _packed, _unpacked, _unpacked_box
+
+    rng = np.random.default_rng(1)
+    masks = [np.zeros((40, 60), dtype=bool)]
+    for _ in range(12):
+        m = np.zeros((40, 60), dtype=bool)
+        y, x = rng.integers(0, 40), rng.integers(0, 60)
+        m[y:y + rng.integers(1, 20), x:x + rng.integers(1, 30)] = True
+        m &= rng.random(m.shape) < 0.9
+        masks.append(m)
+    masks.append(np.ones((40, 60), dtype=bool))
+    for a in masks:
+        box = _unpacked_box(_packed(a))
+        assert isinstance(box, BoxMask) and np.array_equal(box.full(), a)
+        assert np.array_equal(_unpacked(_packed(a)), a) and box.count() == a.sum()
+        for b in masks:
+            full = _mask_iou(a, b)
+            assert _mask_iou(BoxMask.of(a), BoxMask.of(b)) == full
+            assert _mask_iou(a, _unpacked_box(_packed(b))) == full
+    assert _packed(None) is None and _unpacked(None) is None
+
+
+def test_the_parent_of_a_pool_names_the_weights_without_pytorch():
+    """``label --workers N``'s process hands the estimation to its workers: it records the
+    weights' digest without importing PyTorch (seconds of a core at start-up)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from seqshape.amodal.labeler import weights_digest; "
+            "d = weights_digest(None, 'pretrained'); assert d.startswith('sha256:'), d; "
+            "assert 'torch' not in sys.modules, 'torch imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_preloaded_estimator_is_the_one_a_task_gets(monkeypatch, _torch_threads):
+    from seqshape.amodal import labeler
+    from seqshape.errors import DataError
+
+    monkeypatch.setattr(labeler, "_WORKER_ESTIMATOR", {})
+    spec = labeler.EstimatorSpec(None, "auto-float", "none")
+    labeler.preload_estimator(spec)
+    est = labeler._worker_estimator(spec)
+    resolved = labeler.estimator_spec(est)
+    assert resolved.backend != "auto-float" and resolved.placement == "none"
+    assert labeler._worker_estimator(resolved) is est  # the parent's spec names the backend
+    bad = labeler.EstimatorSpec("/nonexistent/model.pt", "torch", "none")
+    labeler.preload_estimator(bad)  # fails in the background, quietly
+    with pytest.raises(DataError, match="model.pt"):  # the task that needs it says why
+        labeler._worker_estimator(bad)

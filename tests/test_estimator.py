@@ -12,6 +12,7 @@ from seqshape.data.windows import points_length, points_lengths
 from seqshape.errors import ConfigError, DataError
 from seqshape.model import Estimator, ModelConfig, ShapePoseNet
 from seqshape.model import estimator as estimator_module
+from seqshape.model import weights as weights_module
 from seqshape.train.checkpoint import model_payload, save_payload
 
 TINY = ModelConfig(num_points=64, encoder1=(8, 16), encoder2=(16, 24), hidden=20,
@@ -143,7 +144,7 @@ def test_corrupt_and_foreign_files(tmp_path):
 
 
 def test_from_pretrained_missing_is_clear(tmp_path, monkeypatch):
-    monkeypatch.setattr(estimator_module, "PRETRAINED_DIR", tmp_path)
+    monkeypatch.setattr(weights_module, "PRETRAINED_DIR", tmp_path)
     with pytest.raises(DataError, match="seqshape train --model baseline"):
         Estimator.from_pretrained("baseline")
     save_payload(tmp_path / "sequential.pt", model_payload(_model(), {}, {}))
@@ -156,7 +157,7 @@ def _state_equal(a: Estimator, b: Estimator) -> bool:
 
 
 def test_load_resolves_names_and_paths(tmp_path, monkeypatch):
-    monkeypatch.setattr(estimator_module, "PRETRAINED_DIR", tmp_path)
+    monkeypatch.setattr(weights_module, "PRETRAINED_DIR", tmp_path)
     save_payload(tmp_path / "sequential.pt", model_payload(_model(), {}, {}))
     save_payload(tmp_path / "baseline.pt", model_payload(_model(False), {}, {}))
     run = tmp_path / "run"
@@ -194,7 +195,7 @@ def test_load_refuses_pickles(tmp_path):
 def test_resolve_weights_is_shared_with_training(tmp_path, monkeypatch):
     from seqshape.train.checkpoint import resolve_init
 
-    monkeypatch.setattr(estimator_module, "PRETRAINED_DIR", tmp_path)
+    monkeypatch.setattr(weights_module, "PRETRAINED_DIR", tmp_path)
     save_payload(tmp_path / "baseline.pt", model_payload(_model(False), {}, {}))
     assert resolve_init("pretrained", "baseline") == tmp_path / "baseline.pt"
     assert estimator_module.resolve_weights("baseline") == tmp_path / "baseline.pt"

@@ -21,7 +21,7 @@ from seqshape.data import Track
 from seqshape.errors import ConfigError, DataError
 from seqshape.geometry import canonical_to_sensor
 from seqshape.model import Estimator
-from seqshape.model import estimator as estimator_module
+from seqshape.model import weights as weights_module
 from seqshape.testing import box_shell
 from seqshape.train import Trainer, get_train_config
 
@@ -92,7 +92,7 @@ def test_kind_and_config_mismatch_are_clear_errors(dataset, source, tmp_path):
 def test_pretrained(dataset, source, tmp_path, monkeypatch):
     shipped = tmp_path / "pretrained"
     shipped.mkdir()
-    monkeypatch.setattr(estimator_module, "PRETRAINED_DIR", shipped)
+    monkeypatch.setattr(weights_module, "PRETRAINED_DIR", shipped)
     with pytest.raises(DataError, match=r"sequential\.pt: shipped sequential weights are"):
         Trainer(dataset.path, tmp_path / "a", "sequential", SMOKE, init="pretrained")
     shutil.copy(source / "model.pt", shipped / "sequential.pt")

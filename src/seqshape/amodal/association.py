@@ -34,11 +34,12 @@ _FORBIDDEN = 1e6
 
 @dataclass
 class Detection:
-    """One instance of one frame: ``centroid (3,)`` in the common frame, ``mask (h, w)`` bool."""
+    """One instance of one frame: ``centroid (3,)`` in the common frame, ``mask (h, w)`` bool
+    (or its :class:`BoxMask`, as a worker process sends it)."""
 
     frame: int
     centroid: np.ndarray
-    mask: np.ndarray
+    mask: np.ndarray | BoxMask
     index: int = 0  # position in its frame's detection list
 
 
@@ -58,9 +59,54 @@ class _Live:
         return c + vel * (frame - self.frames[-1])
 
 
-def _mask_iou(a: np.ndarray, b: np.ndarray) -> float:
-    inter = np.logical_and(a, b).sum()
-    union = np.logical_or(a, b).sum()
+@dataclass
+class BoxMask:
+    """A 2D bool mask of ``shape`` kept as its pixels' bounding box ``(y0, y1, x0, x1)`` (end
+    exclusive) and the mask within it: what a detection's mask becomes when a worker process
+    sends it (:class:`FrameSegments`), a small part of the full image, all that the
+    association's overlap test (:func:`_mask_iou`) needs."""
+
+    shape: tuple[int, int]
+    box: tuple[int, int, int, int]
+    crop: np.ndarray
+
+    @classmethod
+    def of(cls, mask: np.ndarray) -> BoxMask:
+        """The :class:`BoxMask` of a full bool mask."""
+        if isinstance(mask, BoxMask):
+            return mask
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        if len(rows) == 0:
+            return cls(mask.shape, (0, 0, 0, 0), np.zeros((0, 0), dtype=bool))
+        box = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        return cls(mask.shape, box, np.ascontiguousarray(mask[box[0]:box[1], box[2]:box[3]]))
+
+    def full(self) -> np.ndarray:
+        """The full ``shape`` bool mask."""
+        out = np.zeros(self.shape, dtype=bool)
+        y0, y1, x0, x1 = self.box
+        out[y0:y1, x0:x1] = self.crop
+        return out
+
+    def count(self) -> int:
+        return int(np.count_nonzero(self.crop))
+
+
+def _mask_iou(a, b) -> float:
+    """Intersection over union of two masks (full bool arrays or :class:`BoxMask`)."""
+    if not isinstance(a, BoxMask) and not isinstance(b, BoxMask):
+        inter = np.logical_and(a, b).sum()
+        union = np.logical_or(a, b).sum()
+        return float(inter / union) if union else 0.0
+    a, b = BoxMask.of(a), BoxMask.of(b)
+    y0, y1 = max(a.box[0], b.box[0]), min(a.box[1], b.box[1])
+    x0, x1 = max(a.box[2], b.box[2]), min(a.box[3], b.box[3])
+    inter = 0
+    if y1 > y0 and x1 > x0:
+        inter = int(np.count_nonzero(
+            a.crop[y0 - a.box[0]:y1 - a.box[0], x0 - a.box[2]:x1 - a.box[2]]
+            & b.crop[y0 - b.box[0]:y1 - b.box[0], x0 - b.box[2]:x1 - b.box[2]]))
+    union = a.count() + b.count() - inter
     return float(inter / union) if union else 0.0
 
 
@@ -210,7 +256,7 @@ class FrameSegments:
     detections (centroids in the common frame, 2D masks), their points ``(N_i, 3)`` float32,
     category ids and COCO segmentations, and the 2D instances dropped for too few points
     ``[(mask or None, COCO annotation, ground plane)]``. Pickles with its masks bit-packed
-    (a worker process sends it back)."""
+    (a worker process sends it back; its detections' masks arrive as :class:`BoxMask`)."""
 
     frame: int
     detections: list[Detection] = field(default_factory=list)
@@ -228,22 +274,34 @@ class FrameSegments:
 
     def __setstate__(self, state: dict) -> None:
         state = dict(state)
-        state["detections"] = [Detection(f, c, _unpacked(m), i)
+        state["detections"] = [Detection(f, c, _unpacked_box(m), i)
                                for f, c, i, m in state["detections"]]
         state["unsupported"] = [(_unpacked(m), a, p) for m, a, p in state["unsupported"]]
         self.__dict__.update(state)
 
 
-def _packed(mask: np.ndarray | None) -> tuple | None:
-    """A bool mask as ``(shape, packed bits)`` (an eighth of its bytes), or None."""
-    return None if mask is None else (mask.shape, np.packbits(mask, axis=None))
+def _packed(mask) -> tuple | None:
+    """A 2D bool mask (array or :class:`BoxMask`) as ``(shape, (y0, y1, x0, x1), packed bits
+    of that box)``: its pixels' bounding box only, an eighth of its bytes; or None."""
+    if mask is None:
+        return None
+    m = BoxMask.of(mask)
+    return m.shape, m.box, np.packbits(m.crop, axis=None)
+
+
+def _unpacked_box(packed: tuple | None) -> BoxMask | None:
+    """The :class:`BoxMask` of :func:`_packed`."""
+    if packed is None:
+        return None
+    shape, (y0, y1, x0, x1), bits = packed
+    crop = np.unpackbits(bits, count=(y1 - y0) * (x1 - x0)).reshape(y1 - y0, x1 - x0)
+    return BoxMask(tuple(shape), (y0, y1, x0, x1), crop.view(bool))
 
 
 def _unpacked(packed: tuple | None) -> np.ndarray | None:
-    if packed is None:
-        return None
-    shape, bits = packed
-    return np.unpackbits(bits, count=int(np.prod(shape))).reshape(shape).view(bool)
+    """The full mask of :func:`_packed`."""
+    box = _unpacked_box(packed)
+    return None if box is None else box.full()
 
 
 def segment_frames(log, camera: str, annotations: dict[int, list[dict]], frames,

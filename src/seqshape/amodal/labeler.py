@@ -34,7 +34,11 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import pickle
+import threading
 import time
+import uuid
+import weakref
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -59,7 +63,7 @@ from seqshape.amodal.overlay import draw_overlay, write_overlays  # noqa: F401 (
 from seqshape.amodal.refine import REFINE_MODES, TrackInput, complete_tracks
 from seqshape.data.categories import CLASS_TO_KINS
 from seqshape.data.crop import CropConfig
-from seqshape.data.extract import extract_tracks
+from seqshape.data.extract import crop_frames, extract_tracks, tracks_from_crops
 from seqshape.data.kins import (
     image_entry,
     kins_annotation,
@@ -204,15 +208,90 @@ class LabelResult:
     camera: str | None = None
 
 
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """How :func:`load_estimator` made an estimator: what a worker process needs to load the
+    same one (:func:`complete_chunk`). ``backend`` is the backend it resolved to (``"auto"``
+    and ``"auto-float"`` decided once, in the process that loaded it), so that every process
+    runs the same arithmetic."""
+
+    checkpoint: str | None
+    backend: str
+    placement: str = "pretrained"
+    max_points: int | None = None
+
+
+_SPECS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # estimator -> EstimatorSpec
+_WORKER_ESTIMATOR: dict = {}  # a worker's estimator (:func:`complete_chunk`), by its spec
+
+
 def load_estimator(checkpoint: str | None, backend: str = "auto-float",
-                   placement: str = "pretrained", max_points: int | None = None):
+                   placement: str = "pretrained", max_points: int | None = None,
+                   threads: int | None = None):
     """The estimator of ``checkpoint`` (a path, or "pretrained"/None for the shipped sequential
     one): :meth:`seqshape.model.estimator.Estimator.load`, with the placement refiner
-    ``placement`` (:func:`seqshape.model.placement.load_refiner`) and ``max_points``."""
+    ``placement`` (:func:`seqshape.model.placement.load_refiner`), ``max_points`` and
+    ``threads`` (:class:`~seqshape.model.estimator.Estimator`'s). Its
+    :class:`EstimatorSpec` is kept (:func:`estimator_spec`): with a pool, a log's tracks are
+    then estimated by the pool's workers, each with the same estimator."""
     from seqshape.model.estimator import Estimator  # lazy: torch (modes without a network)
 
-    return Estimator.load("pretrained" if checkpoint is None else checkpoint, backend=backend,
-                          refiner=placement, max_points=max_points)
+    est = Estimator.load("pretrained" if checkpoint is None else checkpoint, backend=backend,
+                         refiner=placement, max_points=max_points, threads=threads)
+    _SPECS[est] = EstimatorSpec(checkpoint, est.backend, placement, max_points)
+    return est
+
+
+def estimator_spec(estimator) -> EstimatorSpec | None:
+    """The :class:`EstimatorSpec` of an estimator made by :func:`load_estimator` (None for any
+    other: it is run in this process only)."""
+    try:
+        return _SPECS.get(estimator)
+    except TypeError:  # not weakly referable: not one of ours
+        return None
+
+
+def _worker_load(spec: EstimatorSpec):
+    """Load ``spec``'s estimator in this process (one thread: a pool runs a process per core)
+    and keep it as the process's estimator, under ``spec`` and under the spec of the backend
+    it resolved to."""
+    import torch  # lazy: only workers that estimate import it
+
+    torch.set_num_threads(1)
+    est = load_estimator(spec.checkpoint, spec.backend, spec.placement, spec.max_points,
+                         threads=1)
+    _WORKER_ESTIMATOR.clear()
+    _WORKER_ESTIMATOR[spec] = _WORKER_ESTIMATOR[estimator_spec(est)] = est
+    return est
+
+
+def preload_estimator(spec: EstimatorSpec) -> None:
+    """Start loading ``spec``'s estimator in this worker process, in a background thread, so
+    that the tasks the worker takes meanwhile (crops, segmentation) overlap with the load and
+    its first :func:`complete_chunk` finds it ready (``backend`` may be ``"auto"`` or
+    ``"auto-float"``: it is resolved in the worker; a task whose spec names another backend
+    loads its own). A failed load is left to that first task, which loads again and raises."""
+    def run():
+        try:
+            _worker_load(spec)
+        except Exception:  # noqa: BLE001 (reported by the task that needs the estimator)
+            log.debug("preloading the estimator failed", exc_info=True)
+
+    _PRELOAD["thread"] = thread = threading.Thread(target=run, name="seqshape-preload",
+                                                   daemon=True)
+    thread.start()
+
+
+_PRELOAD: dict = {}  # this worker's preloading thread (:func:`preload_estimator`)
+
+
+def _worker_estimator(spec: EstimatorSpec):
+    """This process's estimator of ``spec`` (preloaded or loaded before, else loaded now)."""
+    thread = _PRELOAD.pop("thread", None)
+    if thread is not None:
+        thread.join()
+    est = _WORKER_ESTIMATOR.get(spec)
+    return est if est is not None else _worker_load(spec)
 
 
 class TrackReplay:
@@ -292,12 +371,16 @@ def gt_track_inputs(log, classes=None, crop: CropConfig | None = None):
     default all, ``crop`` default :class:`CropConfig`) and the matching :class:`TrackInput`
     list (with the tracks' ego poses when the log has them: the offline estimates use them)."""
     tracks = extract_tracks(log, classes=classes, crop=crop)
+    return tracks, _track_inputs(tracks)
+
+
+def _track_inputs(tracks) -> list[TrackInput]:
+    """The :class:`TrackInput` of each extracted track (:func:`gt_track_inputs`)."""
     ids = label_ids(t.meta["object_id"] for t in tracks)
-    inputs = [TrackInput(t.track_id, list(t.meta["frames"]), t.points, t.poses,
-                         CLASS_TO_KINS[t.meta["class"]], ids[t.meta["object_id"]],
-                         np.asarray(t.size, dtype=np.float64), _track_ego(t))
-              for t in tracks]
-    return tracks, inputs
+    return [TrackInput(t.track_id, list(t.meta["frames"]), t.points, t.poses,
+                       CLASS_TO_KINS[t.meta["class"]], ids[t.meta["object_id"]],
+                       np.asarray(t.size, dtype=np.float64), _track_ego(t))
+            for t in tracks]
 
 
 def _track_ego(track) -> np.ndarray | None:
@@ -405,24 +488,16 @@ def _max_gap(cfg: LabelConfig) -> int:
     return cfg.max_gap if cfg.refine == "smooth" else 0
 
 
-def prepare_task(job: tuple) -> Prepared:
-    """:func:`prepare_tracks` of ``job`` = ``(log, cfg, camera)`` in a worker process
-    (:func:`start_labels`' ``prepared``); the full-image masks of the unsupported 2D instances
-    are left out (they are their annotations' segmentations: decoded again on return)."""
-    out = prepare_tracks(*job)
-    if out.unsupported:
-        out.unsupported = {f: [(None, ann, plane) for _, ann, plane in rows]
-                           for f, rows in out.unsupported.items()}
-    return out
-
-
 def segment_chunk(job: tuple) -> tuple[list[FrameSegments], float]:
     """sc-seg's per-frame part (:func:`~seqshape.amodal.association.segment_frames`) of a run
     of frames, in a worker process of :class:`PreparingSegments` (``job``: log, camera,
     ``{frame: COCO annotations}``, the frames, ``min_points``); ``(segments, seconds)``."""
     log, camera, annotations, frames, min_points = job
+    log = worker_log(log)
     t0 = time.perf_counter()
     segments = segment_frames(log, camera, annotations, frames, min_points)
+    for seg in segments:  # their masks are their annotations' (MaskOnly decodes them again)
+        seg.unsupported = [(None, ann, plane) for _, ann, plane in seg.unsupported]
     return segments, time.perf_counter() - t0
 
 
@@ -439,8 +514,9 @@ class PreparingSegments:
         annotations = instance_masks_by_frame(log, camera, instances_path(log, cfg))
         frames = list(log.frames)
         size = _chunk_size(len(frames), pool.workers)
+        shared = shared_log(log)
         self.tasks = [pool.submit(segment_chunk, (
-            log, camera, {f: annotations[f] for f in frames[k:k + size]}, frames[k:k + size],
+            shared, camera, {f: annotations[f] for f in frames[k:k + size]}, frames[k:k + size],
             cfg.min_points)) for k in range(0, len(frames), size)]
         self.seconds = time.perf_counter() - t0
 
@@ -461,14 +537,97 @@ class PreparingSegments:
         return Prepared(inputs, None, unsupported, seconds + time.perf_counter() - t0)
 
 
+class SharedLog:
+    """A log as it goes to a pool's tasks (:func:`shared_log`): pickled once in this process,
+    unpickled once per worker process (:func:`worker_log`). A log's annotations are many small
+    objects, about 40 ms to pickle and as much to unpickle: for every task of a dense log
+    that was seconds of the parent's time, which no worker can take over."""
+
+    def __init__(self, log):
+        self.key = uuid.uuid4().hex
+        self.blob = pickle.dumps(log, protocol=pickle.HIGHEST_PROTOCOL)
+
+    def get(self):
+        """The log (in a worker: unpickled at the first task that needs it)."""
+        log = _WORKER_LOGS.get(self.key)
+        if log is None:
+            log = _WORKER_LOGS[self.key] = pickle.loads(self.blob)
+            while len(_WORKER_LOGS) > _LOGS_KEPT:
+                _WORKER_LOGS.pop(next(iter(_WORKER_LOGS)))
+        return log
+
+
+_LOGS_KEPT = 8  # logs a process keeps (:class:`SharedLog`): a pool works on a few at a time
+_WORKER_LOGS: dict = {}  # key -> log, in insertion order
+_SHARED: dict = {}  # id(log) -> (log, SharedLog) of this process's last logs
+
+
+def shared_log(log) -> SharedLog:
+    """The :class:`SharedLog` of ``log`` (made once per log: its tasks share one pickle)."""
+    hit = _SHARED.get(id(log))
+    if hit is not None and hit[0] is log:
+        return hit[1]
+    ref = SharedLog(log)
+    _SHARED[id(log)] = (log, ref)  # the log held: its id stays its own while cached
+    while len(_SHARED) > _LOGS_KEPT:
+        _SHARED.pop(next(iter(_SHARED)))
+    return ref
+
+
+def worker_log(log):
+    """The log a task was given: a :class:`SharedLog`'s, or ``log`` itself."""
+    return log.get() if isinstance(log, SharedLog) else log
+
+
+def crop_chunk(job: tuple) -> tuple[list[tuple], float]:
+    """The gt modes' per-frame part (:func:`seqshape.data.extract.crop_frames`) of a run of
+    frames, in a worker process of :class:`PreparingCrops` (``job``: log, the frames, classes,
+    :class:`~seqshape.data.crop.CropConfig`); ``(crops, seconds)``."""
+    log, frames, classes, crop = job
+    log = worker_log(log)
+    t0 = time.perf_counter()
+    cuts = crop_frames(log, frames, classes, crop)
+    return cuts, time.perf_counter() - t0
+
+
+class PreparingCrops:
+    """The gt modes' :func:`prepare_tracks` of one log with its frames cropped by a pool's
+    workers, runs of consecutive frames as tasks (:func:`crop_chunk`); :meth:`get` joins them
+    into tracks here (:func:`seqshape.data.extract.tracks_from_crops`): the same
+    :class:`Prepared` as :func:`prepare_tracks` (tested), whatever the runs."""
+
+    def __init__(self, pool, log, cfg: LabelConfig):
+        self.log, self.cfg = log, cfg
+        frames = list(log.frames)
+        size = _chunk_size(len(frames), pool.workers)
+        shared = shared_log(log)
+        self.tasks = [pool.submit(crop_chunk, (shared, frames[k:k + size], cfg.classes,
+                                               cfg.crop))
+                      for k in range(0, len(frames), size)]
+
+    def ready(self) -> bool:
+        return all(t.ready() for t in self.tasks)
+
+    def get(self) -> Prepared:
+        """Wait for the frames and join them into tracks (:func:`prepare_tracks`' result)."""
+        cuts, seconds = [], 0.0
+        for task in self.tasks:
+            part, secs = task.get()
+            cuts.extend(part)
+            seconds += secs
+        t0 = time.perf_counter()
+        tracks = tracks_from_crops(self.log, cuts, self.cfg.crop)
+        return Prepared(_track_inputs(tracks), tracks, None, seconds + time.perf_counter() - t0)
+
+
 def submit_prepare(pool, log, cfg: LabelConfig, camera: str):
     """Start :func:`prepare_tracks` of ``log`` and ``camera`` in ``pool`` (a
     :class:`seqshape._runner.WorkerPool`): sc-seg's frames in runs across the workers
-    (:class:`PreparingSegments`), the gt modes' crops as one task (:func:`prepare_task`).
+    (:class:`PreparingSegments`), the gt modes' crops likewise (:class:`PreparingCrops`).
     Returns an object whose ``get()`` gives the :class:`Prepared`."""
     if cfg.mode == "sc-seg":
         return PreparingSegments(pool, log, cfg, camera)
-    return pool.submit(prepare_task, (log, cfg, camera))
+    return PreparingCrops(pool, log, cfg)
 
 
 def preparations(log, cfg: LabelConfig, cameras) -> list[str]:
@@ -478,35 +637,101 @@ def preparations(log, cfg: LabelConfig, cameras) -> list[str]:
 
 
 def _complete(log, cfg: LabelConfig, camera: str, estimator, timings: dict,
-              prepared: Prepared | None = None):
+              prepared: Prepared | None = None, pool=None):
     """``(by_frame clouds, extra mask-only instances)`` of the log (module doc), from its
-    :func:`prepare_tracks` (made here when not given)."""
+    :func:`prepare_tracks` (made here when not given). ``estimator``: an estimator, an
+    :class:`EstimatorSpec` (loaded where it runs, once per process) or None (``cfg``'s); with
+    ``pool`` and a spec or an estimator of :func:`load_estimator`, the offline estimation runs
+    in the pool's workers (:func:`complete_chunk`)."""
     prepared = prepared if prepared is not None else prepare_tracks(log, cfg, camera)
     inputs, tracks = prepared.inputs, prepared.tracks
     t0 = time.perf_counter()
     extra = None
-    if cfg.mode == "sc-seg":
-        unsupported = {f: [(rle_to_mask(ann["segmentation"]) if mask is None else mask, ann,
-                            plane) for mask, ann, plane in rows]
-                       for f, rows in (prepared.unsupported or {}).items()}
-        extra = mask_only_labels(log, unsupported, camera)
+    if cfg.mode == "sc-seg" and pool is not None:  # made by the workers that draw the frames
+        extra = mask_only_specs(log, prepared.unsupported or {})
+    elif cfg.mode == "sc-seg":
+        extra = mask_only_labels(log, prepared.unsupported or {}, camera)
     timings["segment"] = prepared.seconds + time.perf_counter() - t0
     t0 = time.perf_counter()
     if cfg.mode == "gt-accumulation":
         clouds = [gt_accumulation_clouds(t) for t in tracks]
     else:
-        est = estimator if estimator is not None else load_estimator(
-            cfg.checkpoint, cfg.backend, cfg.placement, cfg.max_points)
-        est.reset()
-        if not cfg.online and _has_network(est):
-            est = offline_replay(est, inputs, log, cfg.offline)
-        clouds = [c.clouds for c in complete_tracks(
-            est, inputs, cfg.refine, cfg.fit_box, cfg.fit_box_below, cfg.trim)]
-        if cfg.observed:
-            clouds = [add_observed(inp, cl, cfg.observed_max) for inp, cl in
-                      zip(inputs, clouds, strict=True)]
+        if isinstance(estimator, EstimatorSpec):
+            spec, est = estimator, None
+        else:
+            est = estimator if estimator is not None else load_estimator(
+                cfg.checkpoint, cfg.backend, cfg.placement, cfg.max_points)
+            spec = estimator_spec(est)
+        if pool is not None and spec is not None and not cfg.online and inputs:
+            clouds = _complete_in_pool(pool, log, cfg, spec, inputs)
+        else:
+            clouds = complete_clouds(log, cfg, est if est is not None
+                                     else _worker_estimator(spec), inputs)
     timings["complete"] = time.perf_counter() - t0
     return clouds_by_frame(inputs, clouds), extra
+
+
+def complete_clouds(log, cfg: LabelConfig, estimator, inputs) -> list[list]:
+    """Per track of ``inputs`` (:class:`~seqshape.amodal.refine.TrackInput`), its completed
+    cloud in each frame (None where there is none): estimated offline unless ``cfg.online``
+    (:func:`offline_replay`), completed and refined (:func:`~seqshape.amodal.refine
+    .complete_tracks`), with the frame's own points added (``cfg.observed``). Offline, each
+    track's clouds depend on that track alone."""
+    estimator.reset()
+    if not cfg.online and _has_network(estimator):
+        estimator = offline_replay(estimator, inputs, log, cfg.offline)
+    clouds = [c.clouds for c in complete_tracks(
+        estimator, inputs, cfg.refine, cfg.fit_box, cfg.fit_box_below, cfg.trim)]
+    if cfg.observed:
+        clouds = [add_observed(inp, cl, cfg.observed_max) for inp, cl in
+                  zip(inputs, clouds, strict=True)]
+    return clouds
+
+
+def complete_chunk(job: tuple) -> tuple[list[list], float]:
+    """:func:`complete_clouds` of some of a log's tracks in a worker process (``job``: log,
+    :class:`EstimatorSpec`, config, the tracks), with the estimator the spec loads there
+    (once per process); ``(clouds per track, seconds)``."""
+    log, spec, cfg, inputs = job
+    log = worker_log(log)
+    t0 = time.perf_counter()
+    clouds = complete_clouds(log, cfg, _worker_estimator(spec), inputs)
+    return clouds, time.perf_counter() - t0
+
+
+def track_chunks(frames: list[int], workers: int) -> list[list[int]]:
+    """The tracks (indices; ``frames``: each one's length) in about
+    :data:`CHUNKS_PER_WORKER` x ``workers`` groups of similar work, for :func:`complete_chunk`
+    tasks: longest first, each to the group with the least so far (a track's cost is about
+    its frames plus a fixed part); each group in track order, the heaviest group first."""
+    n = min(len(frames), CHUNKS_PER_WORKER * max(1, workers))
+    loads, groups = [0] * n, [[] for _ in range(n)]
+    for i in sorted(range(len(frames)), key=lambda i: (-frames[i], i)):
+        k = loads.index(min(loads))
+        groups[k].append(i)
+        loads[k] += frames[i] + _TRACK_COST_FRAMES
+    order = sorted(range(n), key=lambda k: (-loads[k], k))
+    return [sorted(groups[k]) for k in order if groups[k]]
+
+
+#: the fixed part of a track's estimation cost, in frames (:func:`track_chunks`)
+_TRACK_COST_FRAMES = 4
+
+
+def _complete_in_pool(pool, log, cfg: LabelConfig, spec: EstimatorSpec, inputs) -> list[list]:
+    """:func:`complete_clouds` of every track, its tracks spread over ``pool``'s workers
+    (:func:`track_chunks`); the same clouds as in one process (each track's depend on it
+    alone, and every worker loads the same estimator: tested)."""
+    chunks = track_chunks([len(inp.frames) for inp in inputs], pool.workers)
+    shared = shared_log(log)
+    tasks = [pool.submit(complete_chunk, (shared, spec, cfg, [inputs[i] for i in idx]))
+             for idx in chunks]
+    clouds: list = [None] * len(inputs)
+    for idx, task in zip(chunks, tasks, strict=True):
+        part, _ = task.get()
+        for i, c in zip(idx, part, strict=True):
+            clouds[i] = c
+    return clouds
 
 
 def _render_timed(log, by_frame, cfg, extra, camera, timings, pool=None,
@@ -540,8 +765,11 @@ def start_labels(log, cfg: LabelConfig, cameras=None, estimator=None, pool=None,
     """:func:`label_log_cameras` in parts: ``prepared`` ``{camera: Prepared}`` (the cameras
     of :func:`preparations`, e.g. made by :func:`submit_prepare`'s tasks; made here when
     None: sc-seg with a pool segments runs of frames in its workers, :class:`PreparingSegments`),
-    then the estimation here (the estimates of a track run in order), then the frames' masks
-    handed to ``pool`` (:func:`start_render`); the :class:`PendingLabels` of each camera gives
+    then the estimation (here, or with a pool and an :class:`EstimatorSpec` or an estimator
+    of :func:`load_estimator` in the pool's workers, tracks spread over them:
+    :func:`complete_chunk`; this returns when it is done), then the frames' masks handed to
+    ``pool`` (:func:`start_render`); the
+    :class:`PendingLabels` of each camera gives
     its :class:`LabelResult` when the pool has rendered every frame. Without a pool everything
     is done before this returns."""
     cameras = [check_camera(log, c) for c in (cameras or log.camera_names)]
@@ -556,12 +784,12 @@ def start_labels(log, cfg: LabelConfig, cameras=None, estimator=None, pool=None,
         out = {}
         for c in cameras:
             timings: dict[str, float] = {}
-            by_frame, extra = _complete(log, cfg, c, estimator, timings, prepared.get(c))
+            by_frame, extra = _complete(log, cfg, c, estimator, timings, prepared.get(c), pool)
             out[c] = _render_timed(log, by_frame, cfg, extra, c, timings, pool, keep_masks)
         return out
     timings = {}
     by_frame, _ = _complete(log, cfg, cameras[0], estimator, timings,
-                            prepared.get(cameras[0]))
+                            prepared.get(cameras[0]), pool)
     return {c: _render_timed(log, by_frame, cfg, None, c, dict(timings), pool, keep_masks)
             for c in cameras}
 
@@ -574,12 +802,48 @@ def mask_only_labels(log, unsupported: dict, camera: str | None = None
     :func:`~seqshape.amodal.association.segment_sequence`) seen by ``camera``."""
     out: dict[int, list[tuple[InstanceMask, int]]] = {}
     for frame in sorted(unsupported):
-        cam = log.camera(camera, frame)
-        for k, (mask, ann, plane) in enumerate(unsupported[frame]):
-            inst = mask_instance(f"{log.name}_mask{frame:06d}_{k}", mask,
-                                 float(ann.get("score", 1.0)), plane, cam)
-            if inst is not None:
-                out.setdefault(frame, []).append((inst, int(ann["category_id"])))
+        made = _mask_only(log, frame, camera, [(
+            MaskOnly(f"{log.name}_mask{frame:06d}_{k}", ann, plane, mask), int(ann["category_id"]))
+            for k, (mask, ann, plane) in enumerate(unsupported[frame])])
+        if made:
+            out[frame] = made
+    return out
+
+
+@dataclass
+class MaskOnly:
+    """A mask-only label still to be made (:func:`mask_only_labels`), as it goes to a worker
+    process: the instance's name, its COCO annotation, the sweep's ground plane, and its mask
+    when already decoded (None: decoded from the annotation where it is made)."""
+
+    name: str
+    annotation: dict
+    plane: object
+    mask: np.ndarray | None = None
+
+
+def mask_only_specs(log, unsupported: dict) -> dict[int, list[tuple[MaskOnly, int]]]:
+    """:func:`mask_only_labels` left to be made where the frame is drawn (:func:`render_frame`:
+    by the pool's workers), the same labels: ``{frame: [(MaskOnly, category_id)]}``."""
+    return {frame: [(MaskOnly(f"{log.name}_mask{frame:06d}_{k}", ann, plane),
+                     int(ann["category_id"])) for k, (_, ann, plane) in enumerate(rows)]
+            for frame, rows in sorted(unsupported.items())}
+
+
+def _mask_only(log, frame: int, camera: str | None, items: list) -> list[tuple]:
+    """``items`` ``[(InstanceMask or MaskOnly, category_id)]`` of one frame with each
+    :class:`MaskOnly` made (:func:`~seqshape.amodal.fallback.mask_instance`; left out when it
+    gives none)."""
+    if not any(isinstance(m, MaskOnly) for m, _ in items):
+        return list(items)
+    cam = log.camera(camera, frame)
+    out = []
+    for m, cat in items:
+        if isinstance(m, MaskOnly):
+            mask = rle_to_mask(m.annotation["segmentation"]) if m.mask is None else m.mask
+            m = mask_instance(m.name, mask, float(m.annotation.get("score", 1.0)), m.plane, cam)
+        if m is not None:
+            out.append((m, cat))
     return out
 
 
@@ -589,12 +853,12 @@ class FrameInput:
     the completed clouds ``{track_id: (K, 3)}``, ``{track_id: (category_id, label_id)}``, per
     track with a 2D instance mask (sc-seg) ``(its COCO RLE, the track's own points of the
     frame (M, 3))``, and the instances made otherwise with their category ids
-    (:func:`mask_only_labels`)."""
+    (:func:`mask_only_labels`; a :class:`MaskOnly` is made by :func:`render_frame`)."""
 
     clouds: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict[str, tuple[int, int | None]] = field(default_factory=dict)
     guides: dict[str, tuple[dict, np.ndarray]] = field(default_factory=dict)
-    extra: list[tuple[InstanceMask, int]] = field(default_factory=list)
+    extra: list[tuple[InstanceMask | MaskOnly, int]] = field(default_factory=list)
 
 
 def frame_inputs(by_frame: dict[int, dict[str, tuple]],
@@ -635,14 +899,15 @@ def render_frame(log, frame: int, image_id: int, camera: str, cfg: LabelConfig,
     image = image_entry(image_id, log.name, frame, *size,
                         file_name=log.image_file_name(frame, camera))
     inputs = inputs or FrameInput()
+    extra = _mask_only(log, frame, camera, inputs.extra)
     meta = dict(inputs.meta)
-    meta.update({m.track_id: (cat, None) for m, cat in inputs.extra})
+    meta.update({m.track_id: (cat, None) for m, cat in extra})
     guides = own = None
     if cfg.align:
         guides = {tid: rle_to_mask(rle) for tid, (rle, _) in inputs.guides.items()}
         own = {tid: pts for tid, (_, pts) in inputs.guides.items()}
     insts = frame_masks(inputs.clouds, cam, size, alpha=cfg.alpha, order=cfg.order,
-                        extra=[m for m, _ in inputs.extra], guides=guides,
+                        extra=[m for m, _ in extra], guides=guides,
                         align=cfg.align_config if cfg.align else None, guide_points=own)
     insts = [m for m in insts if np.count_nonzero(m.visible) >= cfg.min_visible_area]
     oco, ico = occlusion_order([m.order for m in insts], [m.amodal for m in insts])
@@ -685,6 +950,7 @@ def render_chunk(job: tuple) -> tuple[list[tuple], float]:
     (``job``: log, camera, config, ``[(image_id, frame, FrameInput | None)]``, whether the
     masks go back); ``([(image, annotations, packed masks or None)], seconds)``."""
     log, camera, cfg, frames, keep_masks = job
+    log = worker_log(log)
     t0 = time.perf_counter()
     out = []
     for image_id, frame, inputs in frames:
@@ -770,7 +1036,8 @@ def start_render(log, by_frame: dict[int, dict[str, tuple]], cfg: LabelConfig,
             rows.append((image, anns, insts if keep_masks else None))
         return camera, [_Done((rows, time.perf_counter() - t0))], keep_masks
     size = _chunk_size(len(frames), pool.workers)
-    tasks = [pool.submit(render_chunk, (log, camera, cfg, frames[k:k + size], keep_masks))
+    shared = shared_log(log)
+    tasks = [pool.submit(render_chunk, (shared, camera, cfg, frames[k:k + size], keep_masks))
              for k in range(0, len(frames), size)]
     return camera, tasks, keep_masks
 
@@ -827,9 +1094,9 @@ def weights_digest(checkpoint: str | None, placement: str = "none") -> str:
     ``checkpoint`` (a path, or a shipped name: "pretrained" / None is the shipped sequential
     one), followed by ``" placement sha256:<hex>"`` of the placement refiner's file unless
     ``placement`` is "none"; :class:`~seqshape.errors.DataError` when there is no such file."""
-    # lazy: the resolver's module imports torch (modes without a network never call this)
-    from seqshape.model.estimator import resolve_weights
+    # torch-free modules: the parent of `label --workers N` never imports PyTorch
     from seqshape.model.placement import pretrained_refiner_path
+    from seqshape.model.weights import resolve_weights
 
     path = resolve_weights("pretrained" if checkpoint is None else checkpoint)
     if placement != "none":

@@ -133,22 +133,48 @@ def extract_tracks(log: DrivingLog, classes: Iterable[str] | None = None,
     kept when at least one of its frames has that many points after the crop; ``frames``: only
     these frames of the log (default all); ``keep_duplicates``: keep a vehicle's duplicate
     annotations as tracks of their own (module doc, "Duplicate annotations").
+
+    In two parts, for callers that spread the frames over processes: :func:`crop_frames`
+    (each frame on its own) and :func:`tracks_from_crops` (the frames' crops joined).
     """
+    crop = crop or CropConfig()
+    cuts = crop_frames(log, log.frames if frames is None else frames, classes, crop)
+    return tracks_from_crops(log, cuts, crop, min_points, keep_duplicates)
+
+
+def crop_frames(log: DrivingLog, frames: Iterable[int], classes: Iterable[str] | None = None,
+                crop: CropConfig | None = None) -> list[tuple[int, list, list]]:
+    """Per frame of ``frames``, ``(frame, its boxes of the wanted classes, each box's points)``
+    (:func:`~seqshape.data.crop.crop_vehicles`; no points read for a frame without boxes): the
+    part of :func:`extract_tracks` that takes each frame on its own."""
     wanted = set(VEHICLE_CLASSES if classes is None else classes)
     crop = crop or CropConfig()
-    rows: dict[str, list[tuple]] = {}
-    per_frame = []
-    for frame in (log.frames if frames is None else frames):
+    out = []
+    for frame in frames:
         boxes = [b for b in log.boxes(frame) if b.cls in wanted]
-        if not keep_duplicates:
-            per_frame.append(boxes)
         if not boxes:
+            out.append((frame, boxes, []))
             continue
         sweep = np.asarray(log.points(frame))
         plane = _SweepPlane(sweep)
-        cuts = crop_vehicles(sweep, [b.pose for b in boxes], [b.size for b in boxes], crop,
-                             sweep_plane=plane.get)
-        for b, pts in zip(boxes, cuts, strict=True):
+        out.append((frame, boxes, crop_vehicles(sweep, [b.pose for b in boxes],
+                                                [b.size for b in boxes], crop,
+                                                sweep_plane=plane.get)))
+    return out
+
+
+def tracks_from_crops(log: DrivingLog, cuts: Iterable[tuple[int, list, list]],
+                      crop: CropConfig | None = None, min_points: int = 0,
+                      keep_duplicates: bool = False) -> list[Track]:
+    """The tracks of :func:`extract_tracks` from the frames' :func:`crop_frames` (in log
+    order; ``crop``: the :class:`~seqshape.data.crop.CropConfig` they were cut with)."""
+    crop = crop or CropConfig()
+    rows: dict[str, list[tuple]] = {}
+    per_frame = []
+    for frame, boxes, points in cuts:
+        if not keep_duplicates:
+            per_frame.append(boxes)
+        for b, pts in zip(boxes, points, strict=True):
             rows.setdefault(b.track_id, []).append((frame, pts, b))
     dropped = {} if keep_duplicates else duplicate_objects(per_frame)
     for d, k in sorted(dropped.items()):

@@ -68,16 +68,18 @@ from seqshape.model.engine import (
 from seqshape.model.heading import HeadingConfig, HeadingFilter, wrap_angle
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet
 from seqshape.model.placement import apply_corrections, load_refiner
+from seqshape.model.weights import (  # noqa: F401 (re-exported: the names' former home)
+    KINDS,
+    PRETRAINED,
+    PRETRAINED_DIR,
+    pretrained_path,
+    resolve_weights,
+)
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "seqshape-checkpoint"
 CHECKPOINT_VERSION = 1
-KINDS = ("sequential", "baseline")
-PRETRAINED_DIR = Path(__file__).resolve().parent.parent / "pretrained"
-#: The spec of the shipped weights of a given kind (``--init pretrained``, ``--checkpoint
-#: pretrained``).
-PRETRAINED = "pretrained"
 #: A class hint's floor on the vehicle length (m) used for the input scale when no size is
 #: given: about the short end of each class (the points' running extent raises it). Only the
 #: classes longer than ``ModelConfig.scale_ref`` change anything.
@@ -86,41 +88,6 @@ CLASS_MIN_LENGTH = {"car": 3.5, "van": 4.5, "truck": 6.5, "bus": 10.0, "trailer"
 #: vehicle lies 1 km away, so such a point is a unit or frame mistake (millimetres, a world or
 #: map frame) that would give a meaningless estimate.
 MAX_RANGE = 1000.0
-
-
-def pretrained_path(kind: str) -> Path:
-    """The shipped weights ``seqshape/pretrained/<kind>.pt``.
-
-    Raises :class:`ConfigError` for an unknown kind and :class:`DataError` when the file is not
-    installed.
-    """
-    if kind not in KINDS:
-        raise ConfigError(f"unknown pretrained model {kind!r}; choose from {KINDS}")
-    path = PRETRAINED_DIR / f"{kind}.pt"
-    if not path.is_file():
-        raise DataError(path, f"shipped {kind} weights are missing from this installation; "
-                              f"train them with `seqshape train --model {kind}` and pass the "
-                              f"run's model.pt (RUN/model.pt) instead")
-    return path
-
-
-def resolve_weights(spec: str | Path, kind: str = "sequential") -> Path:
-    """The weights file named by ``spec``: the one resolver of "shipped name or path".
-
-    ``spec`` is ``"pretrained"`` (the shipped weights of ``kind``), a shipped name
-    (``"sequential"`` or ``"baseline"``), or the path of an exported ``model.pt`` or a training
-    checkpoint (a :class:`DataError` when there is no such file). The file itself is read and
-    checked by :func:`read_model_file`.
-    """
-    name = str(spec)
-    if name == PRETRAINED:
-        return pretrained_path(kind)
-    if name in KINDS:
-        return pretrained_path(name)
-    path = Path(spec)
-    if not path.is_file():
-        raise DataError(path, "weights file not found")
-    return path
 
 
 def read_model_file(path: str | Path) -> dict[str, Any]:

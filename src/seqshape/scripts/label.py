@@ -11,12 +11,12 @@ overlays under ``OVERLAYS/<camera>/``). The labelling options are the fields of
 Several logs: ``--sequence A,B,...`` or ``--sequence all`` (every log under the root); ``--out``
 is then a folder of ``<log>.json`` (several cameras: ``<log>/<camera>.json``), and
 ``--workers N`` (N > 1) runs N worker processes (:class:`seqshape._runner.WorkerPool`): they
-segment (sc-seg: runs of consecutive frames, associated into tracks here) or crop (gt modes)
-the logs, a few logs ahead, and draw the frames' masks (runs of consecutive frames of any
-log), while this process completes the tracks (the estimator runs here only, loaded once,
-while the workers start on the first logs); each log's file is written, atomically, once all
-its frames are drawn. Every file depends only on its log, so the output does not depend on N
-(nor on the number of logs).
+segment (sc-seg) or crop (gt modes) the logs in runs of consecutive frames, a few logs ahead
+(joined into tracks here), estimate the tracks (sc-* modes: groups of a log's tracks; each
+worker loads the estimator once, in the background from its start) and draw the frames' masks
+(runs of consecutive frames of any log); this process hands out the work and writes each
+log's file, atomically, once all its frames are drawn. Every file depends only on its log,
+so the output does not depend on N (nor on the number of logs; tested).
 
 Every label file records the settings that made it (its ``info`` block,
 :func:`seqshape.amodal.labeler.label_settings`). ``--resume`` skips the logs whose files all
@@ -44,10 +44,12 @@ from seqshape._runner import WorkerPool
 from seqshape._threads import limit_openblas
 from seqshape.amodal.labeler import (
     MODES,
+    EstimatorSpec,
     LabelConfig,
     check_camera,
     label_settings,
     load_estimator,
+    preload_estimator,
     preparations,
     read_label_settings,
     settings_differences,
@@ -145,8 +147,14 @@ def _estimator(mode: str, checkpoint: str | None, backend: str,
     if mode == "gt-accumulation":
         return None
     if "est" not in _ESTIMATOR:
+        import torch  # heavy: only a process that runs the network imports it
+
+        torch.set_num_threads(_THREADS.get("torch", 1))
         _ESTIMATOR["est"] = load_estimator(checkpoint, backend, placement, max_points)
     return _ESTIMATOR["est"]
+
+
+_THREADS: dict = {}  # --threads, set on torch when this process loads the estimator
 
 
 def _targets(args, name: str | None, cameras: list[str]) -> dict[str, tuple]:
@@ -273,8 +281,9 @@ def _resume(args, jobs: list) -> tuple[list, str | None]:
 def _set_threads(mode: str, threads: int) -> None:
     if threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {threads}")
-    if mode != "gt-accumulation":
-        import torch  # heavy: only the sc-* modes run the network
+    _THREADS["torch"] = threads
+    if mode != "gt-accumulation" and "est" in _ESTIMATOR:
+        import torch  # heavy: only a process that runs the network imports it
 
         torch.set_num_threads(threads)
 
@@ -298,11 +307,24 @@ def _start_one(opened: tuple, pool=None) -> tuple:
     here (``pool`` None) or by ``pool``'s workers. Returns what :func:`_finish_one` needs."""
     args, name, log, cameras, cfg, tasks = opened
     prepared = {cam: task.get() for cam, task in tasks.items()}
-    pending = start_labels(log, cfg, cameras, _estimator(args.mode, args.checkpoint,
-                                                         args.backend, args.placement,
-                                                         args.max_points),
-                           pool=pool, keep_masks=args.overlays is not None, prepared=prepared)
+    estimator = _estimator(args.mode, args.checkpoint, args.backend, args.placement,
+                           args.max_points) if pool is None or args.online else _spec(args)
+    pending = start_labels(log, cfg, cameras, estimator, pool=pool,
+                           keep_masks=args.overlays is not None, prepared=prepared)
     return args, name, log, cfg, pending
+
+
+def _spec(args) -> EstimatorSpec | None:
+    """What the workers load to estimate the tracks (None: gt-accumulation). ``--backend
+    auto`` is resolved here first (int8 or float32: the label files record which; every
+    worker then runs the same), the other backends in the workers."""
+    if args.mode == "gt-accumulation":
+        return None
+    backend = args.backend
+    if backend == "auto":
+        backend = _estimator(args.mode, args.checkpoint, args.backend, args.placement,
+                             args.max_points).backend
+    return EstimatorSpec(args.checkpoint, backend, args.placement, args.max_points)
 
 
 def _finish_one(started, weights: str | None) -> list[str]:
@@ -318,13 +340,16 @@ def _ready(started) -> bool:
     return all(p.ready() for p in started[4].values())
 
 
-def _worker_start() -> None:
-    """Start of a drawing worker: nothing to load (unpickling this function has imported the
-    labeller, OpenCV and SciPy: while the parent imports PyTorch and loads the estimator);
-    OpenBLAS held to one thread (:mod:`seqshape._threads`), freed memory kept for reuse
-    (:mod:`seqshape._malloc`)."""
+def _worker_start(preload: EstimatorSpec | None = None) -> None:
+    """Start of a worker (unpickling this function has imported the labeller, OpenCV and
+    SciPy): OpenBLAS held to one thread (:mod:`seqshape._threads`), freed memory kept for reuse
+    (:mod:`seqshape._malloc`); in the sc-* modes the estimator starts loading in the
+    background (:func:`~seqshape.amodal.labeler.preload_estimator`: the workers estimate the
+    tracks, and their first tasks, crops or segments, overlap with the load)."""
     limit_openblas(1)
     keep_freed_memory()
+    if preload is not None:
+        preload_estimator(preload)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -365,14 +390,16 @@ def _label(args: argparse.Namespace, jobs: list, weights: str | None) -> int:
             for line in _finish_one(_start_one(_open_one(args, name)), weights):
                 print(line)
         return 0
-    # The workers segment or crop the logs (a few logs ahead) and draw the frames (any log's,
-    # in runs of frames); this process completes the tracks (the estimator runs here only)
-    # and writes each log's files once all its frames are drawn, in the order of the logs.
+    # The workers segment or crop the logs (a few logs ahead), estimate their tracks and draw
+    # the frames (any log's, in runs of frames); this process hands out the work and writes
+    # each log's files once all its frames are drawn, in the order of the logs.
     # At most `workers` logs wait for their frames (their clouds are held here until then).
     # With workers every core is busy: OpenBLAS's spinning threads would only take cores from
     # the other processes (one worker alone gains from them: sc-seg 0.85x without; docs/amodal.md)
     limit_openblas(1)
-    with WorkerPool(args.workers, initializer=_worker_start) as pool:
+    preload = None if args.mode == "gt-accumulation" else EstimatorSpec(
+        args.checkpoint, args.backend, args.placement, args.max_points)
+    with WorkerPool(args.workers, initializer=_worker_start, initargs=(preload,)) as pool:
         todo = deque(jobs)
         opened: deque = deque(_open_one(args, todo.popleft(), pool)
                               for _ in range(min(args.workers, len(todo))))
