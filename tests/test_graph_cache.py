@@ -177,3 +177,106 @@ def test_least_recently_used_graphs_are_pruned(folder, monkeypatch):
     cached_graph(net, "f", lambda: b"f" * 200)  # over the budget alone: kept, being the newest
     assert {p.name for p in _graphs(folder)} == {_name(net, "f")}
     assert (folder / "users-own-model.onnx").read_bytes() == b"not ours"
+
+
+# --------------------------------------------------------- the verdicts of "auto"'s check
+
+
+def _verdicts(folder) -> list:
+    return sorted(folder.glob(f"{graph_cache.VERDICT_PREFIX}*.json"))
+
+
+class _Check:
+    """A backend check that counts its runs."""
+
+    def __init__(self, ok: bool = True):
+        self.ok, self.runs = ok, 0
+
+    def __call__(self) -> bool:
+        self.runs += 1
+        return self.ok
+
+
+def test_a_verdict_is_checked_once_per_model_and_machine(folder, monkeypatch):
+    from seqshape.model.graph_cache import cached_verdict
+
+    net = _net()
+    for ok in (True, False):
+        check = _Check(ok)
+        name = f"onnx-{ok}"
+        assert cached_verdict(net, name, check) is ok and check.runs == 1
+        assert cached_verdict(net, name, check) is ok and check.runs == 1  # read back
+    assert len(_verdicts(folder)) == 2
+    check = _Check()
+    cached_verdict(_net(seed=1), "onnx-True", check)  # other weights: checked
+    assert check.runs == 1
+    monkeypatch.setattr(graph_cache, "machine_id", lambda: "another CPU")
+    cached_verdict(net, "onnx-True", check)  # another machine's arithmetic: checked
+    assert check.runs == 2
+
+
+def test_a_damaged_verdict_is_checked_again_and_errors_store_nothing(folder):
+    from seqshape.errors import MissingDependencyError
+    from seqshape.model.graph_cache import cached_verdict, verdict_key
+
+    net = _net()
+    check = _Check()
+    cached_verdict(net, "onnx", check)
+    (path,) = _verdicts(folder)
+    assert path.name == f"{graph_cache.VERDICT_PREFIX}{verdict_key(net, 'onnx')}.json"
+    for junk in ("{not json", '{"backend": "onnx", "ok": "yes"}', '{"backend": "x", "ok": true}',
+                 "[1]"):
+        path.write_text(junk)
+        assert cached_verdict(net, "onnx", check) is True
+    assert check.runs == 5 and path.read_text() == '{"backend": "onnx", "ok": true}'
+
+    def missing():
+        raise MissingDependencyError("no runtime")
+
+    with pytest.raises(MissingDependencyError):
+        cached_verdict(net, "onnx-int8", missing)
+    assert len(_verdicts(folder)) == 1
+
+
+def test_verdicts_off_with_the_cache_and_pruned(folder, monkeypatch):
+    from seqshape.model.graph_cache import cached_verdict
+
+    monkeypatch.setattr(graph_cache, "MAX_VERDICTS", 3)
+    check = _Check()
+    for seed in range(5):
+        cached_verdict(_net(seed), "onnx", check)
+    assert len(_verdicts(folder)) == 3 and check.runs == 5
+    monkeypatch.setenv(graph_cache.ENV, "none")
+    cached_verdict(_net(), "onnx", check)
+    cached_verdict(_net(), "onnx", check)
+    assert check.runs == 7
+
+
+def test_auto_reads_the_verdicts_of_an_earlier_process(folder, monkeypatch):
+    """``select_backend`` in a later process (its in-process cache empty) asks no check."""
+    from seqshape.model.engine import select_backend
+
+    net = _net()
+    asked = []
+
+    def check(name):
+        asked.append(name)
+        return name == "onnx"
+
+    monkeypatch.setattr(engine_module, "_AUTO_CACHE", {})
+    assert select_backend(net, check, ("onnx-int8", "onnx")) == "onnx"
+    assert asked == ["onnx-int8", "onnx"]
+    monkeypatch.setattr(engine_module, "_AUTO_CACHE", {})
+    assert select_backend(net, check, ("onnx-int8", "onnx")) == "onnx"
+    assert asked == ["onnx-int8", "onnx"]
+
+
+def test_machine_id_names_the_cpu():
+    mid = graph_cache.machine_id()
+    assert mid == graph_cache.machine_id() and "|" in mid
+    if os.path.exists("/proc/cpuinfo"):
+        with open("/proc/cpuinfo") as fh:
+            text = fh.read()
+        if "flags" in text:
+            flag = next(ln for ln in text.splitlines() if ln.startswith("flags")).split()[-1]
+            assert any(flag in part.split() for part in mid.split("|"))

@@ -57,7 +57,7 @@ from torch import nn
 
 from seqshape.errors import ConfigError, MissingDependencyError, require
 from seqshape.geometry import box_surface
-from seqshape.model.graph_cache import cached_graph
+from seqshape.model.graph_cache import cached_graph, cached_verdict
 from seqshape.model.int8 import quantize_onnx
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet, motion_features
 from seqshape.model.transforms import place_points
@@ -731,14 +731,15 @@ def select_backend(model: ShapePoseNet, check: Callable[[str], bool],
     (``RuntimeWarning``) when a backend is passed over, saying why; an int8 one whose check
     fails only logs it (float32 is then the exact choice: some weights round worse than
     others). Cached per process, model (:func:`model_fingerprint`) and ``order``, so the
-    check runs once."""
+    check runs once; and each backend's verdict on disk, per model and machine
+    (:func:`seqshape.model.graph_cache.cached_verdict`), so later processes skip it."""
     key = (model_fingerprint(model), order)
     if key in _AUTO_CACHE:
         return _AUTO_CACHE[key]
     reasons, quiet, chosen = [], [], "torch"
     for name in order:
         try:
-            ok = check(name)
+            ok = cached_verdict(model, name, lambda name=name: check(name))
         except MissingDependencyError:
             reasons.append(f"{name}: runtime not installed (pip install 'seqshape[fast]')")
             continue

@@ -25,6 +25,13 @@ on disk under a key made of exactly these, and read back instead of exported.
   the user also keeps other files in).
 * A folder that cannot be created or written is not an error: the graph is built as without the
   cache, with one warning per process.
+
+The same folder keeps the verdicts of ``backend="auto"``'s check (:func:`cached_verdict`: does
+a fast backend reproduce the reference on this machine?), about 0.1-0.35 s a process
+otherwise. A verdict depends on the graph and on the machine's arithmetic, so its key is the
+graph's key, the check's own code (``estimator.py``), the CPU (model name and feature flags),
+the platform and numpy's version; files ``seqshape-check-<key>.json``, at most
+:data:`MAX_VERDICTS`, written atomically; an unreadable one is checked again.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import hashlib
 import json
 import logging
 import os
+import platform
 import warnings
 from collections.abc import Callable
 from importlib import metadata
@@ -53,6 +61,9 @@ FORMAT = b"seqshape-onnx-graph/1"
 PREFIX = "seqshape-graph-"  # the cache's file names: PREFIX + key + ".onnx"
 _DIGEST = 32
 _SOURCES = ("network.py", "engine.py", "int8.py", "transforms.py", "placement.py")
+#: Verdicts kept (:func:`cached_verdict`; a few hundred bytes each).
+MAX_VERDICTS = 256
+VERDICT_PREFIX = "seqshape-check-"
 _warned: set[str] = set()
 
 
@@ -75,11 +86,11 @@ def _version(dist: str) -> str:
         return "-"
 
 
-def _code_digest() -> bytes:
+def _code_digest(sources: tuple[str, ...] = _SOURCES) -> bytes:
     """SHA-256 of the source of the modules that define the exported graphs."""
     h = hashlib.sha256()
     here = Path(__file__).resolve().parent
-    for name in _SOURCES:
+    for name in sources:
         try:
             h.update((here / name).read_bytes())
         except OSError:  # no source shipped (a frozen install): versions only
@@ -165,12 +176,80 @@ def cached_graph(model, kind: str, build: Callable[[], bytes]) -> bytes:
         log.debug("ONNX graph %s read from %s", kind, path)
         return graph
     graph = build()
+    if _store(folder, path, graph + hashlib.sha256(graph).digest()):
+        _prune(folder, path)
+    return graph
+
+
+def _store(folder: Path, path: Path, data: bytes) -> bool:
+    """Write ``data`` to ``path`` atomically; False (with one warning a process) when the
+    folder cannot be written."""
     try:
-        atomic_write_bytes(path, graph + hashlib.sha256(graph).digest())
+        atomic_write_bytes(path, data)
     except OSError as exc:
         _warn_once(str(folder), f"{folder}: cannot write the ONNX graph cache ({exc}); "
                                 f"graphs are exported in every process (set {ENV} to a "
                                 "writable folder, or to 'none')")
-        return graph
-    _prune(folder, path)
-    return graph
+        return False
+    return True
+
+
+def machine_id() -> str:
+    """What a backend check's outcome depends on besides the graph (module doc): the CPU's
+    model name and feature flags (``/proc/cpuinfo``, else :func:`platform.processor`), the
+    platform and numpy's version."""
+    cpu = platform.processor()
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        lines = []
+    for field in ("model name", "flags", "Features"):
+        value = next((ln.split(":", 1)[1].strip() for ln in lines
+                      if ln.split(":", 1)[0].strip() == field and ":" in ln), "")
+        cpu += "|" + " ".join(sorted(value.split()))
+    return "|".join([platform.machine(), platform.system(), cpu, _version("numpy")])
+
+
+def verdict_key(model, name: str) -> str:
+    """The key of backend ``name``'s check verdict for ``model`` on this machine."""
+    h = hashlib.sha256(graph_key(model, f"check:{name}").encode())
+    h.update(_code_digest(("estimator.py",)))
+    h.update(machine_id().encode())
+    return h.hexdigest()
+
+
+def cached_verdict(model, name: str, run: Callable[[], bool]) -> bool:
+    """Backend ``name``'s check of ``model`` (``run()``): read from the cache when this
+    machine checked it before (module doc), else run and stored. ``run``'s exceptions (a
+    missing runtime) pass through and store nothing."""
+    folder = cache_dir()
+    if folder is None:
+        return run()
+    path = folder / f"{VERDICT_PREFIX}{verdict_key(model, name)}.json"
+    try:
+        stored = json.loads(path.read_text())
+        if stored.get("backend") == name and isinstance(stored.get("ok"), bool):
+            log.debug("backend check of %s read from %s", name, path)
+            return stored["ok"]
+    except (OSError, ValueError, AttributeError):
+        pass  # not checked yet on this machine, or unreadable: check again
+    ok = bool(run())
+    if _store(folder, path, json.dumps({"backend": name, "ok": ok}).encode()):
+        _prune_verdicts(folder, path)
+    return ok
+
+
+def _prune_verdicts(folder: Path, newest: Path) -> None:
+    """Remove the oldest verdicts of ``folder`` beyond :data:`MAX_VERDICTS`."""
+    files = []
+    for path in folder.glob(f"{VERDICT_PREFIX}*.json"):
+        try:
+            files.append((path != newest, -path.stat().st_mtime, path))
+        except OSError:
+            continue
+    files.sort(key=lambda f: f[:2])
+    for _, _, path in files[MAX_VERDICTS:]:
+        try:
+            path.unlink()
+        except OSError:
+            pass
