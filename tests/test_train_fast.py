@@ -27,7 +27,7 @@ from seqshape.train.losses import (
 )
 from seqshape.train.prefetch import BatchPrefetcher
 from seqshape.train.reference import reference_losses
-from seqshape.train.trainer import make_adam
+from seqshape.train.trainer import early_weights, make_adam
 
 
 @pytest.fixture(scope="module")
@@ -164,6 +164,44 @@ def test_fast_losses_equal_the_reference_step(dataset, tmp_path, kind):
             torch.testing.assert_close(got[k], ref[k], rtol=1e-6, atol=0)
         for k in g_ref:
             torch.testing.assert_close(g_got[k], g_ref[k], rtol=1e-4, atol=1e-7)
+
+
+def test_early_weights_by_hand():
+    lengths = torch.tensor([[0, 5, 0, 3, 4, 2, 0], [7, 7, 7, 0, 0, 0, 0]])
+    w = early_weights(lengths, 3.0, 2)
+    # row 0: nothing before the first detection; detections 1 and 2 (and the empty frame
+    # between them) weigh 4; row 1: frames 0-1 are its first two detections
+    torch.testing.assert_close(w, torch.tensor([[1, 4, 4, 4, 1, 1, 1], [4, 4, 1, 1, 1, 1, 1.]]))
+    assert torch.all(early_weights(lengths, 0.0, 4) == 1)
+
+
+def test_early_weight_weighs_each_windows_first_detections(dataset, tmp_path):
+    """The weighted objective equals the per-frame losses of the reference averaged with the
+    weights (computed here from the frames' detection counts); validation stays unweighted."""
+    tr = _recipe_trainer(dataset, tmp_path, "sequential")
+    tr.runlog.close()
+    windows = tr._windows(2)
+    batch = batch_for_step(windows, 0, 2)
+    plain = tr._losses(batch, 2)
+    tr.cfg = dataclasses.replace(tr.cfg, early_weight=4.0, early_frames=3)
+    assert tr._losses(batch, 2)["cd"] == plain["cd"]  # unweighted unless asked
+    got = tr._losses(batch, 2, weighted=True)
+    # the reference's per-frame losses: its batch mean over one selected frame at a time
+    sel = (batch["valid"] & (torch.cumsum((batch["lengths"] > 0).long(), 1) > 0)).numpy()
+    cds, poses, ws = [], [], []
+    for b, t in zip(*np.nonzero(sel), strict=True):
+        one = dict(batch, valid=torch.zeros_like(batch["valid"]))
+        one["valid"][b, t] = True
+        with torch.no_grad():
+            ref = reference_losses(tr.model, one, 2, tr._scale(one))
+        cds.append(float(ref["cd"]))
+        poses.append(float(ref["pose"]))
+        ws.append(5.0 if int((batch["lengths"][b, :t + 1] > 0).sum()) <= 3 else 1.0)
+    ws = np.array(ws)
+    assert 0 < np.sum(ws > 1) < len(ws)
+    np.testing.assert_allclose(float(got["cd"]), np.dot(ws, cds) / ws.sum(), rtol=1e-5)
+    np.testing.assert_allclose(float(got["pose"]), np.dot(ws, poses) / ws.sum(), rtol=1e-5)
+    np.testing.assert_allclose(float(plain["cd"]), np.mean(cds), rtol=1e-5)
 
 
 def test_prefetched_batches_equal_batches_built_in_place(dataset):

@@ -71,6 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override a ModelConfig field of the preset, VALUE in JSON "
                              "(repeatable), e.g. --model-set view_input=true "
                              "--model-set num_complete=2048")
+    parser.add_argument("--early-weight", type=float, default=None, metavar="X",
+                        help="extra loss weight of each training window's first detections, "
+                             "where the GRU starts cold (default: the preset's, 0)")
+    parser.add_argument("--early-frames", type=int, default=None, metavar="K",
+                        help="how many of a window's first detections --early-weight weighs "
+                             "(default 4)")
     parser.add_argument("--no-tensorboard", action="store_true",
                         help="write no TensorBoard logs")
 
@@ -104,7 +110,8 @@ def build_config(args: argparse.Namespace):
             dataclasses.replace(s, lr=lr) for s, lr in zip(cfg.stages, lrs, strict=True)))
     overrides = {"seed": args.seed, "batch_size": args.batch_size, "window": args.window,
                  "threads": args.threads, "val_every": args.val_every,
-                 "ckpt_every": args.ckpt_every}
+                 "ckpt_every": args.ckpt_every, "early_weight": args.early_weight,
+                 "early_frames": args.early_frames}
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     if args.no_tensorboard:
         cfg = dataclasses.replace(cfg, tensorboard=False)

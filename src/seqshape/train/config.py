@@ -50,6 +50,13 @@ class TrainConfig:
     """Ground-truth complete points per window used by both losses."""
     p_first: float = 0.25
     """Probability that a training window starts at the track's first frame."""
+    early_weight: float = 0.0
+    """Extra weight, in the training objective, of each window's first ``early_frames``
+    detections: the GRU starts from zero there, as at a track's first detection, and with
+    long windows those frames are a small share of the loss (docs/model.md, "Early
+    detections in the loss"). 0: every frame alike (the paper). Validation is unweighted."""
+    early_frames: int = 4
+    """The detections of a window that ``early_weight`` applies to."""
     windows_per_track: int = 4
     """Windows drawn per track and epoch."""
     lr_min_ratio: float = 0.05
@@ -91,7 +98,10 @@ class TrainConfig:
         for i, s in enumerate(stages):
             if s.steps < 0 or s.lr <= 0:
                 raise ConfigError(f"stage {i + 1}: steps must be >= 0 and lr > 0, got {s}")
-        for name in ("window", "batch_size", "num_complete_gt", "threads", "log_every"):
+        if self.early_weight < 0:
+            raise ConfigError(f"TrainConfig.early_weight must be >= 0, got {self.early_weight}")
+        for name in ("window", "batch_size", "num_complete_gt", "threads", "log_every",
+                     "early_frames"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("p_first", "length_points_prob"):

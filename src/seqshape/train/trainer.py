@@ -206,8 +206,13 @@ class Trainer:
         return self.model.cfg.scale_for(batch["length"].float())
 
     # ------------------------------------------------------------------ losses
-    def _losses(self, batch: dict[str, torch.Tensor], stage: int | None) -> dict[str, torch.Tensor]:
+    def _losses(self, batch: dict[str, torch.Tensor], stage: int | None,
+                weighted: bool = False) -> dict[str, torch.Tensor]:
         """Per-batch mean CD (m) and pose loss (m^2) over the frames that count.
+
+        ``weighted`` (the training objective): with ``TrainConfig.early_weight`` the means are
+        weighted, each window's first ``early_frames`` detections by ``1 + early_weight``
+        (:func:`early_weights`); validation calls it unweighted.
 
         ``stage`` 0 / 1 computes only the CD / pose term (stage 1 with the backbone frozen
         and run without gradient); None or 2 computes both. The frames that count are the
@@ -226,6 +231,10 @@ class Trainer:
         gt_pose = batch["poses"][sel]  # (F, 4)
         gt = place_points(batch["complete"][sel.nonzero()[:, 0]], gt_pose)  # (F, M, 3)
         n = max(1, int(sel.sum()))
+        w = None
+        if weighted and self.cfg.early_weight > 0:
+            w = early_weights(batch["lengths"], self.cfg.early_weight, self.cfg.early_frames)[sel]
+            n = w.sum().clamp_min(1.0)
         res = {"frames": torch.tensor(float(sel.sum()))}
         canonical = self.model.cfg.shape_frame == "canonical"
         pose = None
@@ -233,9 +242,11 @@ class Trainer:
             pose = self.model.decode_pose(h, means, scales)  # (F, 4)
         if stage != 1:
             shape = self.model.decode_shape(h, means, pose if canonical else None, scales)
-            res["cd"] = chamfer_distance(shape, gt).sum() / n
+            cd = chamfer_distance(shape, gt)
+            res["cd"] = (cd if w is None else cd * w).sum() / n
         if stage != 0:
-            res["pose"] = pose_loss(pose, gt_pose, gt).sum() / n
+            pl = pose_loss(pose, gt_pose, gt)
+            res["pose"] = (pl if w is None else pl * w).sum() / n
         return res
 
     def _objective(self, res: dict[str, torch.Tensor], stage: int) -> torch.Tensor:
@@ -331,7 +342,7 @@ class Trainer:
         if stage == 2 and not self.state["sigma_init"]:
             self._init_sigmas(batch)
         lr = self._set_lr(opt, stage)
-        res = self._losses(batch, stage)
+        res = self._losses(batch, stage, weighted=True)
         loss = self._objective(res, stage)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -491,6 +502,15 @@ def train(data: str | Path, out: str | Path, kind: str = "sequential",
           init: str | Path | None = None) -> Path:
     """Train (or resume) a run, optionally from ``init`` weights; returns ``RUN/model.pt``."""
     return Trainer(data, out, kind, cfg or TrainConfig(), resume, init).run()
+
+
+def early_weights(lengths: torch.Tensor, extra: float, frames: int) -> torch.Tensor:
+    """``(B, W)`` float32 loss weights of a batch of windows with ``lengths (B, W)`` points per
+    frame: ``1 + extra`` on each window's first ``frames`` detections (frames with points; an
+    empty frame between them counts with the detections before it), 1 elsewhere."""
+    seen = torch.cumsum((lengths > 0).long(), dim=1)  # detections up to and including a frame
+    early = (seen >= 1) & (seen <= frames)
+    return 1.0 + float(extra) * early.float()
 
 
 def make_adam(groups: list[dict[str, Any]]) -> torch.optim.Optimizer:
