@@ -182,10 +182,10 @@ def test_early_weight_weighs_each_windows_first_detections(dataset, tmp_path):
     tr.runlog.close()
     windows = tr._windows(2)
     batch = batch_for_step(windows, 0, 2)
-    plain = tr._losses(batch, 2)
-    tr.cfg = dataclasses.replace(tr.cfg, early_weight=4.0, early_frames=3)
-    assert tr._losses(batch, 2)["cd"] == plain["cd"]  # unweighted unless asked
     with torch.no_grad():
+        plain = tr._losses(batch, 2)
+        tr.cfg = dataclasses.replace(tr.cfg, early_weight=4.0, early_frames=3)
+        assert tr._losses(batch, 2)["cd"] == plain["cd"]  # unweighted unless asked
         got = tr._losses(batch, 2, weighted=True)
     # the reference's per-frame losses: its batch mean over one selected frame at a time
     sel = (batch["valid"] & (torch.cumsum((batch["lengths"] > 0).long(), 1) > 0)).numpy()
