@@ -375,14 +375,35 @@ def test_static_sensor_uses_sensor_frame_motion():
     assert out[-1].pose[3] == pytest.approx(0.0, abs=1e-6)
 
 
+def _yaw_pose(yaw):
+    t = np.eye(4)
+    t[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    return t
+
+
 def test_heading_vote_and_motion_line():
     from seqshape.model.heading import HeadingConfig, HeadingFilter, motion_direction
 
-    flt = HeadingFilter(HeadingConfig(vote=True))
     yaws = [0.1, 0.1, 0.1, 0.1 + np.pi, 0.1, 0.1]
+    flt = HeadingFilter(HeadingConfig(vote_fixed_only=False))  # the sensor frame votes too
     flips = [flt.update(np.array([5.0, 0, 0, y]), None, True) for y in yaws]
     assert flips == [False, False, False, True, False, False]
-    assert HeadingFilter(HeadingConfig()).update(np.array([5.0, 0, 0, 3.0]), None, True) is False
+    # by default the vote needs a fixed frame: nothing without ego poses ...
+    flt = HeadingFilter(HeadingConfig())
+    assert [flt.update(np.array([5.0, 0, 0, y]), None, True) for y in yaws] == [False] * 6
+    # ... and, with them, votes in the fixed frame: the ego turned by 90 degrees between
+    # frames 2 and 3, so a parked car's sensor-frame yaw falls by 90 degrees there (the car
+    # sits at the sensor's origin, so that turning the ego does not move it)
+    ego = [np.eye(4)] * 3 + [_yaw_pose(np.pi / 2)] * 3
+    sensor_yaws = [0.1, 0.1, 0.1, 0.1 - np.pi / 2 + np.pi, 0.1 - np.pi / 2, 0.1 - np.pi / 2]
+    flt = HeadingFilter(HeadingConfig())
+    assert [flt.update(np.array([0.0, 0, 0, y]), e, True)
+            for y, e in zip(sensor_yaws, ego, strict=True)] == [False, False, False, True,
+                                                                False, False]
+    assert not HeadingConfig().active_without_poses
+    assert HeadingConfig(vote_fixed_only=False).active_without_poses
+    assert not HeadingFilter(HeadingConfig(vote=False)).update(
+        np.array([5.0, 0, 0, 3.0]), np.eye(4), True)
     line = np.c_[np.arange(6) * 0.5, np.arange(6) * -0.5]
     assert motion_direction(line, 1.5, 0.8) == pytest.approx(-np.pi / 4)
     assert motion_direction(line[:3], 1.5, 0.8) is None  # 1.41 m: not enough travel

@@ -12,11 +12,12 @@ one frame:
   by the ego vehicle's own motion (a parked car passed by the ego "moves" backwards), so this is
   used only with per-frame ego poses (sensor frame -> fixed frame) or when the sensor is
   declared static (``static_sensor``, e.g. the synthetic generator's).
-* **vote** (opt-in): a decaying vote of the raw yaws (unit vectors in the fixed frame, or the
-  sensor frame without ego poses: the ego turns far less than 90 degrees between frames), with
-  the motion-confirmed headings weighted ``motion_weight``. A raw yaw more than 90 degrees from
-  the vote is flipped: an isolated flip of a parked or slow vehicle is outvoted by its
-  neighbours.
+* **vote** (on by default in a fixed frame): a decaying vote of the raw yaws (unit vectors in
+  the fixed frame; with ``vote_fixed_only=False`` also in the sensor frame when there are no
+  ego poses), with the motion-confirmed headings weighted ``motion_weight``. Where motion gives
+  no answer, a raw yaw more than 90 degrees from the vote is flipped: a flip of a parked or
+  slow vehicle is outvoted by the track's other frames (a parked car passed by the ego is seen
+  from many sides, and the views that show its front outvote the ambiguous ones).
 * **shape** (opt-in, ``shape=True``; needs the frame's points, ``update(..., points=...)``):
   where motion has given no answer on the track so far (a parked car, the first frames of a
   track), the observed points, accumulated over the track in the estimated box frame (x along
@@ -67,10 +68,14 @@ class HeadingConfig:
     """Frames with points (the latest ones) the motion line is fitted to (at least 3)."""
     min_consistency: float = 0.8
     """Minimum correlation of frame order and position along the motion line."""
-    vote: bool = False
-    """Also flip raw yaws that disagree by more than 90 degrees with the track's vote."""
-    vote_decay: float = 0.8
+    vote: bool = True
+    """Also flip raw yaws that disagree by more than 90 degrees with the track's vote (where
+    motion gives no answer). On by default since 2026-12-05 (docs/model.md)."""
+    vote_decay: float = 0.95
     """Per-frame decay of the vote (memory of about 1 / (1 - decay) frames)."""
+    vote_fixed_only: bool = True
+    """Vote only in a fixed frame (ego poses given, or ``static_sensor``): without them the
+    yaws are in the sensor frame, which turns with the ego over the vote's memory."""
     motion_weight: float = 3.0
     """Weight, in the vote, of a heading confirmed by motion (a raw yaw weighs 1)."""
     shape: bool = False
@@ -120,7 +125,7 @@ class HeadingConfig:
     @property
     def active_without_poses(self) -> bool:
         """Whether anything is done on a step without ego poses."""
-        return self.vote or (self.motion and self.static_sensor)
+        return (self.vote and not self.vote_fixed_only) or (self.motion and self.static_sensor)
 
 
 def wrap_angle(a: float) -> float:
@@ -299,10 +304,11 @@ class HeadingFilter:
         if not moving and not self.moved and self.profile is not None and shape_allowed(cls):
             target = self._shape_target()
             confirmed = target is not None
-        if target is None and cfg.vote and self.vote.any():
+        vote = cfg.vote and (fixed or not cfg.vote_fixed_only)
+        if target is None and vote and self.vote.any():
             target = math.atan2(self.vote[1], self.vote[0])
         flip = target is not None and abs(wrap_angle(yaw - target)) > math.pi / 2
-        if cfg.vote and has_points:
+        if vote and has_points:
             # a majority vote of the raw yaws, plus the confirmed ones (weighted)
             vote_yaw, w = (yaw + math.pi if flip else yaw, cfg.motion_weight) if confirmed \
                 else (yaw, 1.0)
