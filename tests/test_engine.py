@@ -317,12 +317,14 @@ def test_int8_backend_on_real_looking_tracks(kind):
 
 def test_int8_check_fails_on_a_biased_engine(monkeypatch):
     """The statistical check catches what a wrong scale or zero point would do: every centre
-    2 cm off (noise of 1 cm moves the median centre by about 0.9 mm)."""
+    2 cm off (noise of 1 cm moves the median centre by about 8 mm, int8 itself by about 2 mm
+    with the round-12 weights)."""
     net = Estimator.load("sequential", backend="torch").model
     steps = car_stream(net.cfg.num_points, seed=3, n_tracks=12, n_steps=3)
     fast = Estimator(net, backend="onnx-int8")
     mine, allowed = noise_quantiles(fast, steps, INT8_NOISE)
     assert np.all(mine <= allowed), (mine, allowed)
+    own = mine[0, 1]  # int8's own median centre deviation: the bias lands within it of 2 cm
     run = fast._engine.run
 
     def biased(inputs):
@@ -332,7 +334,7 @@ def test_int8_check_fails_on_a_biased_engine(monkeypatch):
 
     monkeypatch.setattr(fast._engine, "run", biased)
     mine, allowed = noise_quantiles(fast, steps, INT8_NOISE)
-    assert mine[0, 1] == pytest.approx(0.02, abs=1e-3) and mine[0, 1] > allowed[0, 1]
+    assert abs(mine[0, 1] - 0.02) <= own + 1e-3 and mine[0, 1] > allowed[0, 1]
     monkeypatch.setattr(engine_module, "car_stream", lambda n: steps)
     monkeypatch.setattr(estimator_module, "car_stream", lambda n: steps)
     assert not estimator_module.check_backend(fast)
