@@ -37,9 +37,11 @@ class _Reverser:
 
     recurrent = False
 
-    def __init__(self, tracks: list[Track], flipped: dict[str, set[int]]):
+    def __init__(self, tracks: list[Track], flipped: dict[str, set[int]],
+                 yaw_offset: float = 0.0):
         self.tracks = {tr.track_id: tr for tr in tracks}
         self.flipped = flipped
+        self.yaw_offset = yaw_offset
         self.frame: dict[str, int] = {}
 
     def step(self, track_ids, point_lists):
@@ -49,6 +51,7 @@ class _Reverser:
             self.frame[tid] = t + 1
             tr = self.tracks[tid]
             pose = tr.poses[t].copy()
+            pose[3] += self.yaw_offset
             if t in self.flipped.get(tid, set()):
                 pose[3] += np.pi
             out.append(_Est(tr.complete_in_frame(t), pose))
@@ -74,6 +77,19 @@ def test_reversed_in_3_of_10_frames_is_30_percent_and_one_track():
     assert f["track_flip_median_pct"] == pytest.approx(30.0)
     md = metrics_markdown(s)
     assert "sequential 30.0 % of frames, 1 of 1 tracks (100.0 %) with a flip" in md
+
+
+def test_rotation_gain_without_flips_leaves_the_flipped_frames_out():
+    tracks = [_track("a")]
+    res = evaluate_tracks({"sequential": _Reverser(tracks, {"a": {2, 5, 7}}, yaw_offset=0.1),
+                           "baseline": _Reverser(tracks, {}, yaw_offset=0.2)},
+                          tracks, emd_every=0, workers=0, floor="split", hints=False)
+    s = summarize(res)
+    # sequential: 7 frames 0.1 rad off, 3 turned around (pi - 0.1); baseline 0.2 everywhere
+    assert s["sequential"]["rot_deg"] == pytest.approx(np.degrees((0.7 + 3 * (np.pi - 0.1)) / 10))
+    assert s["above_floor"]["rot_pct"] > 300
+    assert s["above_floor"]["rot_noflip_pct"] == pytest.approx(-50.0)
+    assert "(without 180-degree flips -50.0 %)" in metrics_markdown(s)
 
 
 def test_clean_track_has_no_flip_and_median_over_tracks():

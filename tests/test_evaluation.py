@@ -217,6 +217,8 @@ def test_report_files_plots_and_html(dataset, tmp_path):
     assert gains["trans_pct"] == pytest.approx(
         100 * (data["sequential"]["trans_cm"] / data["baseline"]["trans_cm"] - 1))
     assert gains["cd_pct"] < 0 and gains["trans_pct"] < 0  # less pose noise: better
+    noflip = [data["details"][m]["rot_deg_without_flips"] for m in ("sequential", "baseline")]
+    assert gains["rot_noflip_pct"] == pytest.approx(100 * (noflip[0] / noflip[1] - 1))
     assert summary["paper"] == PAPER_TABLE
     md = (tmp_path / "metrics.md").read_text()
     assert "| sequential (paper) | 2.30 | 0.250 | 9.40 | 12.00 |" in md

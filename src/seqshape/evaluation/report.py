@@ -6,8 +6,10 @@ not sampled by ``emd_every``, unknown poses). The CD floor is averaged the same 
 track's floor weighted by its number of frames with a CD; the EMD floor (``emd_floor_m``, null
 without EMD) by its frames with an EMD. ``"above_floor"`` compares the sequential model with
 the baseline on the parts of their CD and EMD above the floors (issue 19):
-``{"cd_pct", "emd_pct", "emd_raw_pct", "trans_pct", "rot_pct"}``, the change in % (negative:
-the sequential model is better), or absent without both methods.
+``{"cd_pct", "emd_pct", "emd_raw_pct", "trans_pct", "rot_pct", "rot_noflip_pct"}``, the change
+in % (negative: the sequential model is better; the last compares the rotation errors of the
+frames that are not 180-degree flips, ``details[m]["rot_deg_without_flips"]``, so that a few
+tracks held backwards do not hide the rest), or absent without both methods.
 
 ``metrics.json``::
 
@@ -370,10 +372,12 @@ def floor_summary(result: EvalResult, method: str) -> dict[str, Any]:
             "methods": sorted(set(fl["method"][sel].tolist()))}
 
 
-def above_floor(summary: dict[str, Any], floors: dict[str, dict[str, Any]]
+def above_floor(summary: dict[str, Any], floors: dict[str, dict[str, Any]],
+                details: dict[str, dict[str, Any]] | None = None
                 ) -> dict[str, float | None] | None:
     """The sequential model against the baseline (issue 19): the change (%) of the CD and EMD
-    above their floors, of the raw EMD, the translation and the rotation; None without both."""
+    above their floors, of the raw EMD, the translation, the rotation and (with ``details``)
+    the rotation without flipped frames; None without both."""
     if "sequential" not in summary or "baseline" not in summary:
         return None
     seq, base = summary["sequential"], summary["baseline"]
@@ -393,7 +397,10 @@ def above_floor(summary: dict[str, Any], floors: dict[str, dict[str, Any]]
             "emd_pct": change(*above("emd_m", "emd_floor_m")),
             "emd_raw_pct": change(seq.get("emd_m"), base.get("emd_m")),
             "trans_pct": change(seq.get("trans_cm"), base.get("trans_cm")),
-            "rot_pct": change(seq.get("rot_deg"), base.get("rot_deg"))}
+            "rot_pct": change(seq.get("rot_deg"), base.get("rot_deg")),
+            "rot_noflip_pct": change(
+                (details or {}).get("sequential", {}).get("rot_deg_without_flips"),
+                (details or {}).get("baseline", {}).get("rot_deg_without_flips"))}
 
 
 def summarize(result: EvalResult, reference: str = "sequential") -> dict[str, Any]:
@@ -406,7 +413,7 @@ def summarize(result: EvalResult, reference: str = "sequential") -> dict[str, An
     ref = reference if reference in floors else result.methods[0]
     out["cd_floor_cm"] = floors[ref]["cd_floor_cm"]
     out["emd_floor_m"] = floors[ref]["emd_floor_m"]
-    gains = above_floor(out, floors)
+    gains = above_floor(out, floors, details)
     if gains is not None:
         out["above_floor"] = gains
     out["details"] = details
@@ -467,7 +474,8 @@ def metrics_markdown(summary: dict[str, Any]) -> str:
                      f"EMD {paper['emd_m']:+.0f} %, translation {paper['trans_cm']:+.0f} %, "
                      f"rotation {paper['rot_deg']:+.0f} %): CD above its floor {pct('cd_pct')}, "
                      f"EMD above its floor {pct('emd_pct')} (raw EMD {pct('emd_raw_pct')}), "
-                     f"translation {pct('trans_pct')}, rotation {pct('rot_pct')}.")
+                     f"translation {pct('trans_pct')}, rotation {pct('rot_pct')} "
+                     f"(without 180-degree flips {pct('rot_noflip_pct')}).")
     for key, label in EXTRA_LABELS.items():
         det = summary.get("details", {})
         vals = [f"{m} {_fmt(det[m][key], key)}" for m in methods
