@@ -27,7 +27,7 @@ def main() -> None:
     args = ap.parse_args()
     seq = open_sequence(args.scenes, args.sequence, args.frames)
     _, inputs = gt_track_inputs(seq)
-    comps = complete_tracks(Estimator.load(args.checkpoint), inputs, "smooth")
+    comps = complete_tracks(Estimator.load(args.checkpoint, refiner="none"), inputs, "smooth")
     rows = []
     for inp, comp in zip(inputs, comps, strict=True):
         i = len(inp.frames) // 2  # the track's middle frame

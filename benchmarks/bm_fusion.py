@@ -633,8 +633,10 @@ def main() -> int:
     tracks = [split[i] for i in range(n)]
     tracks = [tr for tr in tracks if detection_span(tr) is not None]
     try:
-        seq = Estimator.load(args.checkpoint, kind="sequential", threads=args.threads)
-        base = Estimator.load(args.baseline, kind="baseline", threads=args.threads)
+        seq = Estimator.load(args.checkpoint, kind="sequential", threads=args.threads,
+                             refiner="none")  # the ablations: the networks alone
+        base = Estimator.load(args.baseline, kind="baseline", threads=args.threads,
+                              refiner="none")
     except ConfigError as exc:  # a wrong or missing model: say so without a traceback
         sys.exit(str(exc))
     results = run_rows(tracks, seq, base, rows, args.emd_every, args.workers, args.seed)

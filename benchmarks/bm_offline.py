@@ -93,7 +93,7 @@ def main() -> None:
     if args.data is None:
         print("bm_offline: no --data given (a track dataset folder); nothing measured")
         return
-    est = Estimator.load(args.weights, threads=args.threads, backend="torch")
+    est = Estimator.load(args.weights, threads=args.threads, backend="torch", refiner="none")
     tracks = load_tracks(args.data, args.split, args.tracks)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, chunk frames "
           f"{args.chunk_frames}, {time.strftime('%Y-%m-%d %H:%M %Z')}")

@@ -88,7 +88,7 @@ def main() -> int:
     ds = ds if args.split == "all" else ds.split(args.split)
     Contained.points_pct, Contained.shape_pct = args.points_pct, args.shape_pct
     ests = {}
-    extra = {} if args.refiner == "none" else {"refiner": args.refiner}
+    extra = {"refiner": args.refiner}
     for kind in ("sequential", "baseline"):
         ests[kind] = Estimator.from_pretrained(kind, threads=args.threads, **extra)
         ests[f"{kind} + step"] = Contained.from_pretrained(kind, threads=args.threads, **extra)

@@ -72,7 +72,7 @@ def main() -> None:
             refiners[name] = load_refiner(spec, cfg)
     rows = []
     for kind, spec in (("sequential", args.checkpoint), ("baseline", args.baseline)):
-        est = Estimator.load(spec, kind=kind, threads=1, backend="torch")
+        est = Estimator.load(spec, kind=kind, threads=1, backend="torch", refiner="none")
         frames = collect_frames(est, ds, args.every, desc=kind)
         n = len(frames["n"])
         if not n:

@@ -102,8 +102,7 @@ def load(spec: str, backend: str, threads: int | None, seed: int,
         torch.manual_seed(seed)
         return Estimator(ShapePoseNet(MODEL_PRESETS["small"]), threads=threads, backend=backend,
                          **extra)
-    if refiner != "none":  # (an older tree's loader may not take these options)
-        extra["refiner"] = refiner
+    extra["refiner"] = refiner  # explicit: the loaders' default is the shipped refiner
     return Estimator.load(spec, threads=threads, backend=backend, **extra)
 
 

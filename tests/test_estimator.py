@@ -107,10 +107,12 @@ def test_checkpoint_round_trip(tmp_path):
     assert not est.recurrent and est.kind == "baseline" and est.metrics["val_cd_m"] == 0.05
     pts = np.random.default_rng(3).normal(size=(30, 3)).astype(np.float32)
     ref = Estimator(model).step(["a"], [pts])[0]
-    exact = Estimator.from_checkpoint(path, backend="torch")  # the reference: bit for bit
+    # the reference, bit for bit (the network's own placement: the loaders' default refiner
+    # was trained on the shipped networks, not on this one)
+    exact = Estimator.from_checkpoint(path, backend="torch", refiner="none")
     np.testing.assert_array_equal(exact.step(["a"], [pts])[0].complete, ref.complete)
     # the float32 fast backends: the same arithmetic in another order
-    fl = Estimator.from_checkpoint(path, backend="auto-float")
+    fl = Estimator.from_checkpoint(path, backend="auto-float", refiner="none")
     np.testing.assert_allclose(fl.step(["a"], [pts])[0].complete, ref.complete, atol=1e-5)
     # the loaders' default, "auto": int8 where its check passes (these random weights may not)
     assert est.backend in ("onnx-int8", "onnx")

@@ -15,7 +15,9 @@ from seqshape.sim.generate import generate_dataset, preset_config
 
 @pytest.fixture(scope="module")
 def shipped():
-    return {k: Estimator.from_pretrained(k, threads=1) for k in ("sequential", "baseline")}
+    # the networks' own placement; the refined ones below
+    return {k: Estimator.from_pretrained(k, threads=1, refiner="none")
+            for k in ("sequential", "baseline")}
 
 
 @pytest.fixture(scope="module")
@@ -47,6 +49,23 @@ def test_sequential_beats_baseline_on_fixed_val_set(summary):
     seq, base = summary["sequential"], summary["baseline"]
     assert seq["rot_deg"] < 0.8 * base["rot_deg"]
     assert seq["cd_cm"] < base["cd_cm"] and seq["trans_cm"] < base["trans_cm"]
+
+
+def test_the_loaders_place_with_the_shipped_refiner_by_default(tmp_path):
+    from seqshape.model.placement import PlacementRefiner
+
+    pts = np.random.default_rng(1).normal(size=(150, 3)).astype(np.float32) * [2, 1, 0.5]
+    pts += np.array([14, -4, -1], np.float32)
+    for kind in ("sequential", "baseline"):
+        default = Estimator.from_pretrained(kind, threads=1, backend="torch")
+        assert isinstance(default.refiner, PlacementRefiner)
+        assert isinstance(Estimator.load(kind, threads=1, backend="torch").refiner,
+                          PlacementRefiner)
+        own = Estimator.from_pretrained(kind, threads=1, backend="torch", refiner="none")
+        assert own.refiner is None
+        # the default step is the refined one: the network's estimate, then the correction
+        (a,), (b,) = default.step(["t"], [pts]), own.step(["t"], [pts])
+        assert np.abs(a.pose[:2] - b.pose[:2]).max() > 1e-4
 
 
 def test_foreign_and_corrupt_files_are_clear_errors(tmp_path):

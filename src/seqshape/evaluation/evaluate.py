@@ -102,7 +102,7 @@ def load_estimator(spec: str, kind: str, backend: str = "auto-float",
     """:meth:`Estimator.load` of ``spec`` ('pretrained': the shipped weights of ``kind``),
     checked to be of ``kind``; the error names the flag that takes the other kind."""
     est = Estimator.load(kind if spec == "pretrained" else spec, backend=backend,
-                         max_points=max_points)
+                         max_points=max_points, refiner="none")  # build_estimators sets it
     if est.kind != kind:
         other = "baseline" if kind == "sequential" else "sequential"
         flag = "--baseline" if kind == "sequential" else "--checkpoint"

@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
                 else:
                     if est is None:
                         est = Estimator.load(kind if spec == "pretrained" else spec, kind=kind,
-                                             threads=cfg.threads, backend="torch")
+                                             threads=cfg.threads, backend="torch",
+                                             refiner="none")  # the networks' own estimates
                     frames = collect_frames(est, ds.split(split), k if split == "train" else 1,
                                             seed=cfg.seed, desc=f"{data.name} {split} {kind}")
                     save_frames(path, frames)
