@@ -1,7 +1,10 @@
 """Break an evaluation's per-frame errors down by the number of detections so far, split
 the rotation error into 180-degree flips and the rest, and split the tracks into parked and
 moving vehicles, also by range from the sensor, at their first frame and by track length
-against the training window (docs/results.md, Table I notes).
+against the training window (docs/results.md, Table I notes); list the tracks that carry the
+flips (docs/model.md, "What the remaining flips are"), and compare how far away and how densely
+the tracks that reach 17 detections are seen at their first detection and from the 17th on
+(docs/results.md, Round 13: the detections ratio on the realistic set).
 
 Parked: the vehicle's distance to the sensor does not change over its track (spread below
 1 cm). With the generator's fixed sensor and no range noise such a track repeats one view, so
@@ -40,7 +43,7 @@ def read(path) -> dict[str, dict[str, np.ndarray]]:
         sel = [r for r in rows if r["method"] == m]
         out[m] = {k: np.array([float(r[k]) if r[k] else np.nan for r in sel])
                   for k in ("n_det", "cd_m", "cd_true_pose_m", "trans_m", "rot_rad", "emd_m",
-                            "distance_m")}
+                            "distance_m", "n_points", "frame")}
         out[m]["track_id"] = np.array([r["track_id"] for r in sel])
     return out
 
@@ -138,6 +141,43 @@ def length_table(data: dict[str, dict[str, np.ndarray]]) -> None:
     print_table(["tracks", "detections so far", *_labels(LENGTH_BINS)], rows)
 
 
+def flipped_tracks_table(data: dict[str, dict[str, np.ndarray]], top: int = 8) -> None:
+    """Per method, the ``top`` tracks with the most flipped frames (rotation error above
+    :data:`FLIP_DEG`), with their frames, median points and range, and first flipped frame."""
+    rows = []
+    for m, rec in data.items():
+        flip = np.degrees(rec["rot_rad"]) > FLIP_DEG
+        counts = {str(t): int(flip[rec["track_id"] == t].sum())
+                  for t in np.unique(rec["track_id"][flip])}
+        for tid, n in sorted(counts.items(), key=lambda kv: -kv[1])[:top]:
+            sel = rec["track_id"] == tid
+            rows.append([m, tid, int(sel.sum()), n, f"{np.median(rec['n_points'][sel]):.0f}",
+                         f"{np.median(rec['distance_m'][sel]):.1f}",
+                         int(rec["frame"][sel & flip].min())])
+    print_table(["method", "track", "frames", "flipped", "points (median)", "range (m, median)",
+                 "first flipped frame"], rows)
+
+
+def late_views_table(data: dict[str, dict[str, np.ndarray]], late: int = 17) -> None:
+    """For the tracks that reach ``late`` detections: the median over tracks of the range and
+    the point count at the first detection and (each track's mean) from the ``late``-th on."""
+    rec = next(iter(data.values()))
+    first, later = [], []
+    for tid in np.unique(rec["track_id"]):
+        sel = rec["track_id"] == tid
+        n = rec["n_det"][sel]
+        if n.max() < late:
+            continue
+        first.append([rec[k][sel][n == 1][0] for k in ("distance_m", "n_points")])
+        later.append([rec[k][sel][n >= late].mean() for k in ("distance_m", "n_points")])
+    if not first:
+        return
+    f, g = np.median(first, axis=0), np.median(later, axis=0)
+    print_table([f"tracks reaching {late}+ detections", "range (m)", "points"],
+                [[f"first detection ({len(first)} tracks)", f"{f[0]:.1f}", f"{f[1]:.0f}"],
+                 [f"{late}+ detections", f"{g[0]:.1f}", f"{g[1]:.0f}"]])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("per_frame", help="EVAL/per_frame.csv from seqshape evaluate")
@@ -171,6 +211,10 @@ def main() -> None:
     range_table(data)
     print()
     length_table(data)
+    print()
+    flipped_tracks_table(data)
+    print()
+    late_views_table(data)
 
 
 if __name__ == "__main__":

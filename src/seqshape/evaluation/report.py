@@ -398,9 +398,8 @@ def above_floor(summary: dict[str, Any], floors: dict[str, dict[str, Any]],
             "emd_raw_pct": change(seq.get("emd_m"), base.get("emd_m")),
             "trans_pct": change(seq.get("trans_cm"), base.get("trans_cm")),
             "rot_pct": change(seq.get("rot_deg"), base.get("rot_deg")),
-            "rot_noflip_pct": change(
-                (details or {}).get("sequential", {}).get("rot_deg_without_flips"),
-                (details or {}).get("baseline", {}).get("rot_deg_without_flips"))}
+            "rot_noflip_pct": change(*[(details or {}).get(m, {}).get("rot_deg_without_flips")
+                                       for m in ("sequential", "baseline")])}
 
 
 def summarize(result: EvalResult, reference: str = "sequential") -> dict[str, Any]:
