@@ -92,7 +92,7 @@ def stop_busy(procs: list[multiprocessing.Process]) -> None:
 
 
 def load(spec: str, backend: str, threads: int | None, seed: int,
-         refiner: str = "none") -> Estimator:
+         refiner: str = "none", smoothing: str = "none") -> Estimator:
     """The estimator of ``spec``; ``NAME@N`` feeds at most N points a frame
     (``Estimator(max_points=N)``)."""
     name, _, cut = spec.rpartition("@")
@@ -101,9 +101,9 @@ def load(spec: str, backend: str, threads: int | None, seed: int,
     if spec == "untrained":
         torch.manual_seed(seed)
         return Estimator(ShapePoseNet(MODEL_PRESETS["small"]), threads=threads, backend=backend,
-                         **extra)
+                         smoothing=smoothing, **extra)
     extra["refiner"] = refiner  # explicit: the loaders' default is the shipped refiner
-    return Estimator.load(spec, threads=threads, backend=backend, **extra)
+    return Estimator.load(spec, threads=threads, backend=backend, smoothing=smoothing, **extra)
 
 
 def throughput_run(est: Estimator, frames) -> float:
@@ -125,7 +125,8 @@ class Runner:
     """The estimators of one set of weights, one per backend, warmed up on the inputs."""
 
     def __init__(self, spec: str, backends: list[str], args):
-        self.ests = {b: load(spec, b, args.threads, args.seed, args.refiner) for b in backends}
+        self.ests = {b: load(spec, b, args.threads, args.seed, args.refiner, args.smoothing)
+                     for b in backends}
         self.frames = make_frames(args.tracks, args.frames, seed=args.seed)
         self.single = [f[0] for f in make_frames(1, 100, seed=args.seed + 1)]
         ids = [f"track{i}" for i in range(args.tracks)]
@@ -175,7 +176,8 @@ def worker_args(args, spec: str) -> list[str]:
     """The command line of a ``--worker`` process for ``spec`` (this run's settings)."""
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--weights", spec,
            "--backends", *args.backends, "--tracks", str(args.tracks), "--frames",
-           str(args.frames), "--seed", str(args.seed), "--refiner", args.refiner]
+           str(args.frames), "--seed", str(args.seed), "--refiner", args.refiner,
+           "--smoothing", args.smoothing]
     return cmd + ([] if args.threads is None else ["--threads", str(args.threads)])
 
 
@@ -248,6 +250,8 @@ def main() -> None:
                     help="the src folder of a frozen copy of the tree to measure side by side")
     ap.add_argument("--refiner", default="none",
                     help="placement refiner of the estimators: 'pretrained', a file or 'none'")
+    ap.add_argument("--smoothing", default="none", choices=("none", "causal"),
+                    help="the estimators' online pose smoothing (Estimator.smoothing)")
     ap.add_argument("--agreement", action="store_true",
                     help="also print each backend's agreement with the reference on partial car "
                          "views, beside the reference's own under 1 cm of noise on the points")
@@ -257,7 +261,7 @@ def main() -> None:
         run_worker(args)
         return
     print(f"torch {torch.__version__}, threads {args.threads}, busy processes {args.busy}, "
-          f"refiner {args.refiner}, "
+          f"refiner {args.refiner}, smoothing {args.smoothing}, "
           f"{time.strftime('%Y-%m-%d %H:%M %Z')}"
           + ("" if args.compare_with is None else f", old tree {args.compare_with}"))
     print(machine_line(), flush=True)

@@ -20,10 +20,11 @@ from seqshape.scripts.scenes import degrade_config
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 
 # options added since that release (issue 17: inference backends, labelling workers;
-# label --resume; evaluate and label --max-points)
+# label --resume; evaluate and label --max-points; evaluate --smoothing)
 ADDED = {"label": {"backend": "auto-float", "workers": 1, "resume": False,
                    "placement": "pretrained", "max_points": None},
-         "evaluate": {"backend": "auto-float", "refiner": "pretrained", "max_points": None}}
+         "evaluate": {"backend": "auto-float", "refiner": "pretrained", "max_points": None,
+                      "smoothing": "none"}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
 # (33229e9), plus ADDED; paths as strings

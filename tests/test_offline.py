@@ -248,6 +248,30 @@ def test_evaluate_offline_end_to_end(tmp_path):
     assert runs[True]["sequential"] != runs[False]["sequential"]
 
 
+def test_evaluate_causal_smoothing_moves_the_sequential_model_only(tmp_path, capsys):
+    from seqshape.cli import main
+
+    data = make_dataset(tmp_path / "ds", n_train=1, n_val=2, frames=9)
+    seq, base = _checkpoint(tmp_path / "s.pt", "sequential"), _checkpoint(tmp_path / "b.pt",
+                                                                          "baseline")
+    common = ["evaluate", "--data", str(data.path), "--checkpoint", seq, "--baseline", base,
+              "--emd-every", "0", "--workers", "0", "--view", "none", "--refiner", "none"]
+    runs = {}
+    for mode in ("none", "causal"):
+        assert main([*common, "--out", str(tmp_path / mode), "--smoothing", mode]) == 0
+        runs[mode] = json.loads((tmp_path / mode / "metrics.json").read_text())
+    assert runs["causal"]["baseline"] == runs["none"]["baseline"]  # the baseline is per frame
+    assert runs["causal"]["sequential"] != runs["none"]["sequential"]
+    assert runs["causal"]["settings"]["modes"] == {"sequential": "online + causal smoothing",
+                                                   "baseline": "online"}
+    assert runs["none"]["settings"]["modes"]["sequential"] == "online"
+    capsys.readouterr()
+    assert main([*common, "--out", str(tmp_path / "x"), "--offline", "--smoothing",
+                 "causal"]) == 1
+    assert "--smoothing is for the online mode" in capsys.readouterr().err
+    assert not (tmp_path / "x" / "metrics.json").exists()
+
+
 def test_labeller_replays_the_offline_estimates():
     from seqshape.amodal.labeler import LabelConfig, offline_replay
     from seqshape.amodal.refine import TrackInput, complete_tracks
@@ -460,7 +484,7 @@ def test_labeller_places_a_known_box_seen_before_its_first_points(online):
 
 
 def _place_reference(complete, own, poses):
-    """``offline._place`` frame by frame with the geometry functions (the code before it was
+    """``smooth.place_shapes`` frame by frame with the geometry functions (the code before it was
     vectorised): the reference it must equal bit for bit."""
     from seqshape.geometry import canonical_to_sensor, wrap_angle
 
@@ -476,8 +500,8 @@ def _place_reference(complete, own, poses):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_place_moves_each_shape_as_frame_by_frame(dtype):
-    from seqshape.model.offline import _place
+def test_place_shapes_moves_each_shape_as_frame_by_frame(dtype):
+    from seqshape.model.smooth import place_shapes as _place
 
     rng = np.random.default_rng(5)
     t, k = 12, 50
@@ -547,3 +571,96 @@ def test_local_fit_equals_the_per_query_least_squares():
             for g, w_ in zip(got, want, strict=True):
                 assert g.shape == w_.shape
                 np.testing.assert_allclose(g, w_, rtol=0, atol=1e-9)
+
+
+# ------------------------------------------------------------ causal (online) smoothing
+
+
+def _noisy_drive(n=30, seed=3, noise=0.3):
+    """True and noisy estimated poses of a car driving at 8 m/s along a gentle curve, seen by
+    a sensor that drives too (ego poses), in each frame's sensor frame."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(n)
+    world = np.c_[20 + 0.8 * k, 5 + 0.004 * k ** 2, np.zeros(n), np.arctan2(0.008 * k, 0.8)]
+    egos = []
+    for j in range(n):
+        e = np.eye(4)
+        e[:3, 3] = [0.6 * j, 0.0, 0.0]
+        egos.append(e)
+    truth = world.copy()
+    truth[:, 0] -= 0.6 * k  # the sensor frames moved by the ego
+    est = truth + np.c_[rng.normal(0, noise, (n, 2)), np.zeros(n), rng.normal(0, 0.08, n)]
+    return truth, est, egos
+
+
+def test_causal_smoother_is_the_smoother_over_the_past_with_the_estimates_front():
+    from seqshape.geometry import wrap_angle
+    from seqshape.model.smooth import CausalSmoother, smooth_track_poses
+
+    truth, est, egos = _noisy_drive()
+    est[12, 3] += math.pi  # one estimate turned around: its front must stay as estimated
+    valid = np.ones(len(est), bool)
+    valid[8] = False  # a frame without points: not fitted, it gets the fit's value
+    sm = CausalSmoother(window=5, history=64, min_frames=5)
+    out = np.array([sm.update(est[t], valid[t], egos[t], 0.1 * t) for t in range(len(est))])
+    # before the fifth frame with points the estimates pass through unchanged
+    assert np.array_equal(out[:4], est[:4])
+    for t in range(4, len(est)):  # after that: the whole-track smoother over frames <= t
+        want = smooth_track_poses(est[:t + 1], np.arange(t + 1.0), np.stack(egos[:t + 1]),
+                                  window=5, valid=valid[:t + 1])[-1]
+        if abs(wrap_angle(want[3] - est[t, 3])) > math.pi / 2:
+            want[3] = wrap_angle(want[3] + math.pi)
+        np.testing.assert_allclose(out[t], want, atol=1e-9)
+    assert abs(wrap_angle(out[12, 3] - est[12, 3])) < math.pi / 2
+    # and it pays: the centres' error falls by a fifth or more once it acts (0.36 -> 0.26 m)
+    raw = np.linalg.norm(est[10:, :2] - truth[10:, :2], axis=1).mean()
+    smooth = np.linalg.norm(out[10:, :2] - truth[10:, :2], axis=1).mean()
+    assert smooth < 0.8 * raw
+
+
+def test_causal_smoother_history_is_bounded_and_arguments_checked():
+    from seqshape.model.smooth import CausalSmoother, smooth_track_poses
+
+    _, est, egos = _noisy_drive(n=20)
+    sm = CausalSmoother(window=3, history=8, min_frames=2)
+    for t in range(20):
+        got = sm.update(est[t], True, egos[t])
+    want = smooth_track_poses(est[12:], np.arange(8.0), np.stack(egos[12:]), window=3)[-1]
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    for bad in ({"window": 0}, {"history": 1}, {"min_frames": 0.5}, {"window": True}):
+        with pytest.raises(ConfigError, match="CausalSmoother"):
+            CausalSmoother(**bad)
+
+
+def test_causal_smoothing_online_mode_equals_stepping():
+    est = _estimator()
+    est.smoothing = "causal"
+    points, egos = _track(frames=14, empty=6)
+    times = 50.0 + 0.1 * np.arange(len(points))
+    stepped = _step_all(est, points, egos, times)
+    _close(estimate_track(est, points, ego_poses=egos, timestamps=times, mode="online",
+                          track_id="t"), stepped)
+    est.smoothing = "none"
+    plain = _step_all(est, points, egos, times)
+    moved = [not np.allclose(a.pose, b.pose) for a, b in zip(stepped, plain, strict=True)]
+    assert not any(moved[:4]) and any(moved[4:])  # from the fifth frame with points on
+    for a, b in zip(stepped, plain, strict=True):  # the shape moves rigidly with the pose
+        np.testing.assert_allclose(sensor_to_canonical(a.complete, a.pose),
+                                   sensor_to_canonical(b.complete, b.pose), atol=1e-4)
+    with pytest.raises(ConfigError, match="smoothing"):
+        est.smoothing = "kalman"
+
+
+def test_window_median_equals_numpy_nanmedian():
+    from seqshape.model.smooth import _window_median, _windows
+
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        t = np.sort(rng.choice(200, rng.integers(1, 80), replace=False)).astype(float)
+        values = rng.normal(0, 1, len(t))
+        query = np.sort(rng.uniform(-10, 210, rng.integers(1, 50)))
+        idx, inside = _windows(t, query, rng.uniform(0.5, 8))
+        want = np.zeros(len(query))
+        some = inside.any(axis=1)
+        want[some] = np.nanmedian(np.where(inside[some], values[idx[some]], np.nan), axis=1)
+        assert np.array_equal(_window_median(values, idx, inside), want)

@@ -29,7 +29,7 @@ from seqshape.evaluation.report import write_metrics
 from seqshape.evaluation.runner import evaluate_tracks
 from seqshape.model.boxfit import BoxFitEstimator
 from seqshape.model.engine import BACKENDS
-from seqshape.model.estimator import Estimator
+from seqshape.model.estimator import SMOOTHING, Estimator
 from seqshape.model.offline import OfflineEstimator
 from seqshape.model.placement import load_refiner
 
@@ -69,6 +69,10 @@ class EvaluateConfig:
     max_points: the most points of a frame fed to each network (a seeded subset of a larger
         frame; None: the model's own num_points). Fewer is faster and less accurate
         (docs/model.md, "Fewer points per frame").
+    smoothing: the sequential model's online pose smoothing (Estimator.smoothing): 'none' or
+        'causal' (each estimate a robust fit over the track's past estimates; docs/model.md,
+        "Causal pose smoothing (online)"). The per-frame baseline stays per frame, and the
+        offline mode has its own whole-track smoothing, so it is refused with --offline.
     """
 
     split: str = "auto"
@@ -87,6 +91,7 @@ class EvaluateConfig:
     backend: str = "auto-float"
     refiner: str = "pretrained"
     max_points: int | None = None
+    smoothing: str = "none"
 
     def __post_init__(self):
         if self.backend not in BACKENDS:
@@ -95,6 +100,12 @@ class EvaluateConfig:
             raise ConfigError("--max-tracks must be >= 1")
         if self.max_points is not None and self.max_points < 1:
             raise ConfigError("--max-points must be >= 1")
+        if self.smoothing not in SMOOTHING:
+            raise ConfigError(f"--smoothing {self.smoothing!r}: choose from "
+                              f"{', '.join(SMOOTHING)}")
+        if self.offline and self.smoothing != "none":
+            raise ConfigError("--smoothing is for the online mode; --offline smooths the "
+                              "whole track already")
 
 
 def load_estimator(spec: str, kind: str, backend: str = "auto-float",
@@ -183,6 +194,7 @@ def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfi
     refiner = load_refiner(cfg.refiner)
     for est in estimators.values():
         est.refiner = refiner
+    estimators["sequential"].smoothing = cfg.smoothing
     if cfg.offline:
         estimators["sequential"] = OfflineEstimator(estimators["sequential"])
     use_boxfit = dataset_is_real(dataset) if cfg.boxfit is None else cfg.boxfit

@@ -62,7 +62,6 @@ import torch.nn.functional as F
 
 from seqshape.data.windows import points_lengths, resample_frame
 from seqshape.errors import ConfigError
-from seqshape.geometry import yaw_to_rotmat
 from seqshape.model.estimator import Estimate, _class_floor, _length_hint, check_points
 from seqshape.model.heading import (
     HeadingConfig,
@@ -71,7 +70,7 @@ from seqshape.model.heading import (
     pose_yaw,
     wrap_angle,
 )
-from seqshape.model.smooth import smooth_track_poses
+from seqshape.model.smooth import CausalSmoother, place_shapes, smooth_track_poses
 
 MODES = ("online", "offline")
 SHAPE_SOURCES = ("online", "final", "two-pass", "bidirectional")
@@ -280,7 +279,10 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
     with the online heading step when not ``offline``)."""
     first = p.passes["online"]
     if not offline:
-        return _finish(estimator, p, first["complete"], first["pose"], None)
+        out = _finish(estimator, p, first["complete"], first["pose"], None)
+        if getattr(estimator, "smoothing", "none") == "causal":  # as Estimator.step does
+            _smooth_causally(estimator, p, out)
+        return out
     last = int(np.flatnonzero(p.counts)[-1])
     passes = {"online": first}
     if cfg.two_pass:
@@ -298,10 +300,24 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
         own = np.broadcast_to(first["pose"][last], poses.shape)
     else:
         complete, own = passes[cfg.shape]["complete"], passes[cfg.shape]["pose"]
-    complete = _place(complete, own, poses)
+    complete = place_shapes(complete, own, poses)
     flips = (consistent_flips(poses, p.egos, p.counts > 0, estimator.heading, cfg.vote_decay)
              if cfg.heading else None)
     return _finish(estimator, p, complete, poses, flips)
+
+
+def _smooth_causally(estimator, p: _Track, out: list[Estimate]) -> None:
+    """The online estimates ``out`` of track ``p`` through a :class:`CausalSmoother`, frame
+    by frame, as :meth:`Estimator.step` with ``smoothing="causal"`` gives them (in place)."""
+    smoother = CausalSmoother()
+    for t, est in enumerate(out):
+        ego = None if p.egos is None else p.egos[t]
+        time = None if p.times is None else float(p.times[t])
+        new = smoother.update(est.pose, est.num_points > 0, ego, time,
+                              1.0 / estimator.frame_period)
+        if not np.array_equal(new, est.pose):
+            est.complete = place_shapes(est.complete[None], est.pose[None], new[None])[0]
+            est.pose = new
 
 
 def _bidirectional(frames: list[np.ndarray], first: dict, back: dict) -> dict:
@@ -324,7 +340,7 @@ def _bidirectional(frames: list[np.ndarray], first: dict, back: dict) -> dict:
     pose[agree, 3] = mean_yaw[agree]
     complete = np.where(use_b[:, None, None], b_complete, first["complete"])
     own = np.where(use_b[:, None], b_pose, f_pose)
-    return {"pose": pose, "complete": _place(complete, own, pose)}
+    return {"pose": pose, "complete": place_shapes(complete, own, pose)}
 
 
 def _smooth(poses: np.ndarray, valid: np.ndarray, egos, times: np.ndarray | None
@@ -341,32 +357,6 @@ def _smooth(poses: np.ndarray, valid: np.ndarray, egos, times: np.ndarray | None
         ego = np.stack(egos)
     return smooth_track_poses(poses, np.arange(len(poses), dtype=np.float64), ego,
                               rate_hz=rate, valid=valid)
-
-
-def _place(complete: np.ndarray, own: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """Shapes ``complete`` (T, K, 3) estimated with poses ``own`` (T, 4), moved to ``poses``:
-    each taken into its canonical frame with its own pose (turned by pi when that is nearer
-    the new yaw: the shape stays where it was estimated, only its front is relabelled) and
-    placed with the new pose. Frames whose pose is unchanged keep their shape as it is."""
-    out = np.array(complete, dtype=np.float32)
-    kind = np.asarray(complete).dtype
-    between = kind if kind.kind == "f" else np.dtype(np.float64)
-    own = np.asarray(own, dtype=np.float64)
-    poses = np.asarray(poses, dtype=np.float64)
-    moved = np.flatnonzero(~np.all(own == poses, axis=1))
-    if len(moved) == 0:
-        return out
-    # all moved frames at once, the operations of geometry.sensor_to_canonical and
-    # canonical_to_sensor frame by frame (the canonical shape in the input's float type)
-    mine = own[moved].copy()
-    turn = np.abs(wrap_angle(mine[:, 3] - poses[moved, 3])) > math.pi / 2
-    mine[turn, 3] = wrap_angle(mine[turn, 3] + math.pi)
-    new = poses[moved]
-    canonical = ((np.asarray(complete)[moved].astype(np.float64) - mine[:, None, :3])
-                 @ yaw_to_rotmat(mine[:, 3])).astype(between)
-    out[moved] = (canonical.astype(np.float64) @ np.swapaxes(yaw_to_rotmat(new[:, 3]), 1, 2)
-                  + new[:, None, :3]).astype(np.float32)
-    return out
 
 
 def _frames(estimator, points: Sequence[np.ndarray], track_id: str

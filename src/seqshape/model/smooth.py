@@ -33,9 +33,13 @@ the axial mean of the estimates within ``2 * window`` frames of it.
 
 from __future__ import annotations
 
+import math
+from collections import deque
+
 import numpy as np
 
-from seqshape.geometry import matrix_to_pose, pose_to_matrix, wrap_angle
+from seqshape.errors import ConfigError
+from seqshape.geometry import matrix_to_pose, pose_to_matrix, wrap_angle, yaw_to_rotmat
 
 
 def _local_fit(t: np.ndarray, y: np.ndarray, window: float, iterations: int,
@@ -137,7 +141,12 @@ def _window_median(values: np.ndarray, idx: np.ndarray, inside: np.ndarray) -> n
     """Median of ``values`` over each row's samples of :func:`_windows`; 0 for an empty row."""
     out = np.zeros(len(idx))
     some = inside.any(axis=1)
-    out[some] = np.nanmedian(np.where(inside[some], values[idx[some]], np.nan), axis=1)
+    # numpy.nanmedian of the rows, without its masked-array path (the rows are short):
+    # sorted, the NaNs last, the mean of the middle one or two of each row's n samples
+    ordered = np.sort(np.where(inside[some], values[idx[some]], np.nan), axis=1)
+    n = inside[some].sum(axis=1)
+    rows = np.arange(len(ordered))
+    out[some] = (ordered[rows, (n - 1) // 2] + ordered[rows, n // 2]) / 2
     return out
 
 
@@ -300,3 +309,102 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     smooth = pose_to_matrix(np.c_[pos, yaw])
     back = np.einsum("tij,tjk->tik", np.linalg.inv(e), smooth)
     return matrix_to_pose(back)
+
+
+def place_shapes(complete: np.ndarray, own: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Shapes ``complete`` (T, K, 3) estimated with poses ``own`` (T, 4), moved to ``poses``:
+    each taken into its canonical frame with its own pose (turned by pi when that is nearer
+    the new yaw: the shape stays where it was estimated, only its front is relabelled) and
+    placed with the new pose. Frames whose pose is unchanged keep their shape as it is."""
+    out = np.array(complete, dtype=np.float32)
+    kind = np.asarray(complete).dtype
+    between = kind if kind.kind == "f" else np.dtype(np.float64)
+    own = np.asarray(own, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    moved = np.flatnonzero(~np.all(own == poses, axis=1))
+    if len(moved) == 0:
+        return out
+    # all moved frames at once, the operations of geometry.sensor_to_canonical and
+    # canonical_to_sensor frame by frame (the canonical shape in the input's float type)
+    mine = own[moved].copy()
+    turn = np.abs(wrap_angle(mine[:, 3] - poses[moved, 3])) > math.pi / 2
+    mine[turn, 3] = wrap_angle(mine[turn, 3] + math.pi)
+    new = poses[moved]
+    canonical = ((np.asarray(complete)[moved].astype(np.float64) - mine[:, None, :3])
+                 @ yaw_to_rotmat(mine[:, 3])).astype(between)
+    out[moved] = (canonical.astype(np.float64) @ np.swapaxes(yaw_to_rotmat(new[:, 3]), 1, 2)
+                  + new[:, None, :3]).astype(np.float32)
+    return out
+
+
+#: Frames of a track's past that :class:`CausalSmoother` fits (the oldest are dropped).
+CAUSAL_HISTORY = 64
+#: Half-width (frames) of the causal smoother's local fit: it sees only the past half.
+CAUSAL_WINDOW = 5
+#: Frames with points a track needs before the causal smoother replaces its estimates.
+CAUSAL_MIN_FRAMES = 5
+
+
+class CausalSmoother:
+    """Online (causal) pose smoothing of one track: each new estimate is replaced by the value
+    at the newest frame of :func:`smooth_track_poses` fitted to the track's past estimates
+    (at most ``history`` frames, this one included), so it uses frames ``<= t`` only.
+
+    The fit is the offline smoother's (robust local quadratic of the centres in the fixed
+    frame of the ego poses, a whole-history line or constant for a parked or creeping track,
+    the heading of a moving track from its motion) with a local window of ``window`` frames,
+    of which only the past half exists. Two differences make it safe to run online:
+
+    * until the track has had ``min_frames`` frames with points the estimate is returned as
+      it is (a motion direction from two or three noisy centres is worse than the network);
+    * the smoother sets the heading *axis*; which end is the front stays the estimate's (the
+      network's and the online heading step's, as with the placement refiner): a smoothed yaw
+      more than 90 degrees from the estimate's is turned by pi.
+
+    Measured in docs/model.md, "Causal pose smoothing (online)". ``update`` costs one
+    :func:`smooth_track_poses` over the history: 2-4.5 ms per track and frame.
+    """
+
+    def __init__(self, window: int = CAUSAL_WINDOW, history: int = CAUSAL_HISTORY,
+                 min_frames: int = CAUSAL_MIN_FRAMES):
+        for name, value, low in (("window", window, 1), ("history", history, 2),
+                                 ("min_frames", min_frames, 1)):
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) \
+                    or value < low:
+                raise ConfigError(f"CausalSmoother {name} must be a whole number >= {low}, "
+                                  f"got {value!r}")
+        self.window, self.min_frames = int(window), int(min_frames)
+        self._poses: deque = deque(maxlen=int(history))
+        self._valid: deque = deque(maxlen=int(history))
+        self._egos: deque = deque(maxlen=int(history))
+        self._times: deque = deque(maxlen=int(history))
+        self.detections = 0
+
+    def update(self, pose, has_points: bool, ego=None, time: float | None = None,
+               rate_hz: float = 10.0) -> np.ndarray:
+        """The smoothed ``(4,)`` pose of this frame given its estimated ``pose`` (sensor
+        frame), whether the frame had points (a frame without them is not fitted, it gets the
+        fit's value), its ``ego`` pose ((4, 4) sensor -> fixed frame, or None: the fit is
+        made in the sensor frames unless every remembered frame has one) and its ``time``
+        (s; the frame rate for the smoother's speed threshold comes from the remembered
+        times, else ``rate_hz``)."""
+        pose = np.asarray(pose, dtype=np.float64).reshape(4)
+        self._poses.append(pose.copy())
+        self._valid.append(bool(has_points))
+        self._egos.append(None if ego is None else np.asarray(ego, dtype=np.float64))
+        self._times.append(np.nan if time is None else float(time))
+        self.detections += bool(has_points)
+        if self.detections < self.min_frames or not any(self._valid):
+            return pose.copy()
+        egos = None if any(e is None for e in self._egos) else np.stack(self._egos)
+        times = np.asarray(self._times)
+        if len(times) > 1 and np.all(np.isfinite(times)):
+            step = float(np.median(np.diff(times)))
+            rate_hz = 1.0 / step if step > 0 else rate_hz
+        n = len(self._poses)
+        out = smooth_track_poses(np.stack(self._poses), np.arange(n, dtype=np.float64), egos,
+                                 rate_hz=rate_hz, window=self.window,
+                                 valid=np.asarray(self._valid))[-1]
+        if abs(wrap_angle(out[3] - pose[3])) > math.pi / 2:  # the front stays the estimate's
+            out[3] = wrap_angle(out[3] + math.pi)
+        return out

@@ -15,12 +15,13 @@ from seqshape._deprecated import forward
 from seqshape.evaluation.evaluate import EvaluateConfig, evaluate_dataset
 from seqshape.evaluation.report import metrics_markdown
 from seqshape.model.engine import BACKENDS
+from seqshape.model.estimator import SMOOTHING
 from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 
 HELP = "evaluate shape and pose estimates on a dataset's val split (or a real dataset)"
 FIELDS = ["split", "boxfit", "boxfit_method", "max_tracks", "emd_every", "emd_points", "workers",
           "batch_tracks", "floor", "view", "seed", "offline", "hints", "backend",
-          "refiner", "max_points"]
+          "refiner", "max_points", "smoothing"]
 _MOVED = ("load_estimator", "select_split", "dataset_is_real", "choose_view_track",
           "evaluate_to", "mode_note")
 
@@ -36,7 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, EvaluateConfig, FIELDS,
                          boxfit_method={"choices": ("lshape", "min_area_rect")},
                          floor={"choices": ("auto", "resample", "split")},
-                         backend={"choices": BACKENDS})
+                         backend={"choices": BACKENDS},
+                         smoothing={"choices": SMOOTHING})
 
 
 def run(args: argparse.Namespace) -> int:
