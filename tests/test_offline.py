@@ -612,6 +612,12 @@ def test_causal_smoother_is_the_smoother_over_the_past_with_the_estimates_front(
             want[3] = wrap_angle(want[3] + math.pi)
         np.testing.assert_allclose(out[t], want, atol=1e-9)
     assert abs(wrap_angle(out[12, 3] - est[12, 3])) < math.pi / 2
+    own = CausalSmoother(window=5, keep_front=False)  # the smoother's own heading instead
+    mine = [own.update(est[t], valid[t], egos[t], 0.1 * t) for t in range(13)][-1]
+    np.testing.assert_allclose(mine, smooth_track_poses(est[:13], np.arange(13.0),
+                                                        np.stack(egos[:13]), window=5,
+                                                        valid=valid[:13])[-1], atol=1e-9)
+    assert abs(wrap_angle(mine[3] - est[12, 3])) > math.pi / 2  # the flip is not kept
     # and it pays: the centres' error falls by a fifth or more once it acts (0.36 -> 0.26 m)
     raw = np.linalg.norm(est[10:, :2] - truth[10:, :2], axis=1).mean()
     smooth = np.linalg.norm(out[10:, :2] - truth[10:, :2], axis=1).mean()

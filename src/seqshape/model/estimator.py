@@ -68,7 +68,7 @@ from seqshape.model.engine import (
 from seqshape.model.heading import HeadingConfig, HeadingFilter, wrap_angle
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet
 from seqshape.model.placement import apply_corrections, load_refiner
-from seqshape.model.smooth import CausalSmoother, place_shapes
+from seqshape.model.smooth import CausalSmoother
 from seqshape.model.weights import (  # noqa: F401 (re-exported: the names' former home)
     KINDS,
     PRETRAINED,
@@ -586,11 +586,8 @@ class Estimator:
         for i, (est, st) in enumerate(zip(result, states, strict=True)):
             if st.smoother is None:
                 st.smoother = CausalSmoother()
-            new = st.smoother.update(est.pose, est.num_points > 0, _ego_pose(ego_poses, i),
-                                     _timestamp(timestamps, i), 1.0 / self.frame_period)
-            if not np.array_equal(new, est.pose):
-                est.complete = place_shapes(est.complete[None], est.pose[None], new[None])[0]
-                est.pose = new
+            st.smoother.update_estimate(est, _ego_pose(ego_poses, i), _timestamp(timestamps, i),
+                                        1.0 / self.frame_period)
 
 
 def _refiner(spec: Any):

@@ -311,13 +311,9 @@ def _smooth_causally(estimator, p: _Track, out: list[Estimate]) -> None:
     by frame, as :meth:`Estimator.step` with ``smoothing="causal"`` gives them (in place)."""
     smoother = CausalSmoother()
     for t, est in enumerate(out):
-        ego = None if p.egos is None else p.egos[t]
-        time = None if p.times is None else float(p.times[t])
-        new = smoother.update(est.pose, est.num_points > 0, ego, time,
-                              1.0 / estimator.frame_period)
-        if not np.array_equal(new, est.pose):
-            est.complete = place_shapes(est.complete[None], est.pose[None], new[None])[0]
-            est.pose = new
+        smoother.update_estimate(est, None if p.egos is None else p.egos[t],
+                                 None if p.times is None else float(p.times[t]),
+                                 1.0 / estimator.frame_period)
 
 
 def _bidirectional(frames: list[np.ndarray], first: dict, back: dict) -> dict:

@@ -359,14 +359,15 @@ class CausalSmoother:
       it is (a motion direction from two or three noisy centres is worse than the network);
     * the smoother sets the heading *axis*; which end is the front stays the estimate's (the
       network's and the online heading step's, as with the placement refiner): a smoothed yaw
-      more than 90 degrees from the estimate's is turned by pi.
+      more than 90 degrees from the estimate's is turned by pi (``keep_front=False``: the
+      smoother's own heading, measured worse, docs/model.md).
 
     Measured in docs/model.md, "Causal pose smoothing (online)". ``update`` costs one
     :func:`smooth_track_poses` over the history: 2-4.5 ms per track and frame.
     """
 
     def __init__(self, window: int = CAUSAL_WINDOW, history: int = CAUSAL_HISTORY,
-                 min_frames: int = CAUSAL_MIN_FRAMES):
+                 min_frames: int = CAUSAL_MIN_FRAMES, keep_front: bool = True):
         for name, value, low in (("window", window, 1), ("history", history, 2),
                                  ("min_frames", min_frames, 1)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) \
@@ -374,6 +375,7 @@ class CausalSmoother:
                 raise ConfigError(f"CausalSmoother {name} must be a whole number >= {low}, "
                                   f"got {value!r}")
         self.window, self.min_frames = int(window), int(min_frames)
+        self.keep_front = bool(keep_front)
         self._poses: deque = deque(maxlen=int(history))
         self._valid: deque = deque(maxlen=int(history))
         self._egos: deque = deque(maxlen=int(history))
@@ -405,6 +407,16 @@ class CausalSmoother:
         out = smooth_track_poses(np.stack(self._poses), np.arange(n, dtype=np.float64), egos,
                                  rate_hz=rate_hz, window=self.window,
                                  valid=np.asarray(self._valid))[-1]
-        if abs(wrap_angle(out[3] - pose[3])) > math.pi / 2:  # the front stays the estimate's
-            out[3] = wrap_angle(out[3] + math.pi)
+        if self.keep_front and abs(wrap_angle(out[3] - pose[3])) > math.pi / 2:
+            out[3] = wrap_angle(out[3] + math.pi)  # the front stays the estimate's
         return out
+
+    def update_estimate(self, est, ego=None, time: float | None = None,
+                        rate_hz: float = 10.0) -> None:
+        """:meth:`update` with an estimate (``.pose``, ``.complete``, ``.num_points``, e.g. a
+        :class:`~seqshape.model.estimator.Estimate`), in place: the pose replaced by the
+        smoothed one and the complete shape moved rigidly with it."""
+        new = self.update(est.pose, est.num_points > 0, ego, time, rate_hz)
+        if not np.array_equal(new, est.pose):
+            est.complete = place_shapes(est.complete[None], est.pose[None], new[None])[0]
+            est.pose = new
