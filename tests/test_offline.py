@@ -13,7 +13,7 @@ from _model_data import box_track, make_dataset, write_checkpoint
 torch = pytest.importorskip("torch")
 
 from seqshape.errors import ConfigError  # noqa: E402
-from seqshape.geometry import sensor_to_canonical  # noqa: E402
+from seqshape.geometry import sensor_to_canonical, wrap_angle  # noqa: E402
 from seqshape.model import Estimator, ModelConfig, ShapePoseNet  # noqa: E402
 from seqshape.model.offline import (  # noqa: E402
     OfflineConfig,
@@ -636,6 +636,38 @@ def test_causal_smoother_history_is_bounded_and_arguments_checked():
     for bad in ({"window": 0}, {"history": 1}, {"min_frames": 0.5}, {"window": True}):
         with pytest.raises(ConfigError, match="CausalSmoother"):
             CausalSmoother(**bad)
+
+
+def test_causal_smoother_kept_fits_equal_the_smoother_over_its_history():
+    """The local fits the causal smoother keeps between frames (those whose window is
+    complete) give, at every frame, the smoother's own result over the remembered history:
+    through the history's bound, runs of frames without points, a parked stretch and a frame
+    without an ego pose (the fit moves to the sensor frames, then back)."""
+    from seqshape.model.smooth import CausalSmoother, smooth_track_poses
+
+    _, est, egos = _noisy_drive(n=90, seed=5)
+    est[40:60, :2] = est[40, :2] + np.random.default_rng(2).normal(0, 0.2, (20, 2))  # parked
+    valid = np.ones(len(est), bool)
+    valid[[9, 10, 11, 12, 13, 14, 15, 30, 71]] = False
+    egos = list(egos)
+    egos[50] = None
+    sm = CausalSmoother(window=3, history=16, min_frames=2)
+    kept = 0
+    for t in range(len(est)):
+        got = sm.update(est[t], valid[t], egos[t], 0.1 * t)
+        lo = max(0, t - 15)
+        if valid[: t + 1].sum() < 2:
+            np.testing.assert_array_equal(got, est[t])
+            continue
+        frames = egos[lo:t + 1]
+        ego = None if any(e is None for e in frames) else np.stack(frames)
+        want = smooth_track_poses(est[lo:t + 1], np.arange(t + 1.0 - lo), ego, window=3,
+                                  valid=valid[lo:t + 1])[-1]
+        if abs(wrap_angle(want[3] - est[t, 3])) > math.pi / 2:
+            want[3] = wrap_angle(want[3] + math.pi)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+        kept = max(kept, len(sm._fits))
+    assert 0 < kept <= 16  # fits are kept, never more than the history holds
 
 
 def test_causal_smoothing_online_mode_equals_stepping():

@@ -221,7 +221,7 @@ class Estimator:
             replaced by a robust fit over its past estimates
             (:class:`~seqshape.model.smooth.CausalSmoother`, after the heading step; frames
             ``<= t`` only, so still online). It lowers the online errors (docs/model.md,
-            "Causal pose smoothing (online)") and costs 2-4.5 ms per track and step. An
+            "Causal pose smoothing (online)") and costs about 1 ms per track and step. An
             attribute: set it after loading too (before a track's first step).
     """
 

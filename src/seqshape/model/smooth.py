@@ -60,6 +60,11 @@ def _local_fit(t: np.ndarray, y: np.ndarray, window: float, iterations: int,
     slope = np.zeros_like(val)
     if len(query) == 0:
         return val, slope
+    if math.isinf(window):  # every query's window is the whole track, every fit one-sided
+        # (degree <= 1): one fit, at the samples' mid-time, evaluated along its line
+        mid = np.array([0.5 * (t.min() + t.max())])
+        v, s = _local_fit_batch(t, y, window, iterations, scale, max_deg, mid)
+        return v + s * (query - mid)[:, None], np.repeat(s, len(query), axis=0)
     # queries in chunks that keep the padded windows to a few million cells
     step = max(1, _CELLS // max(1, len(t) * (max_deg + 1) * max(1, y.shape[1])))
     for lo in range(0, len(query), step):
@@ -218,11 +223,18 @@ def axial_mean(angles) -> float:
     return float(wrap_angle(axis if forward.mean() >= 0.5 else axis + np.pi))
 
 
+#: Robust reweighting rounds of the smoother's fits (:func:`smooth_track_poses`).
+ITERATIONS = 3
+#: Residual scale (m) of the smoother's Tukey weights (:func:`smooth_track_poses`).
+SCALE = 0.3
+
+
 def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: int = 8,
-                       iterations: int = 3, scale: float = 0.3, min_travel: float = 3.0,
+                       iterations: int = ITERATIONS, scale: float = SCALE, min_travel: float = 3.0,
                        min_speed: float = 1.0, valid=None, line_tolerance: float = 0.05,
                        line_sigmas: float = 1.7, parked_constant: bool = True,
-                       sideslip: bool = True, blend: bool = True) -> np.ndarray:
+                       sideslip: bool = True, blend: bool = True, *,
+                       local_fit=None) -> np.ndarray:
     """Smoothed ``(T, 4)`` sensor-frame poses of one track (module doc).
 
     Args:
@@ -254,6 +266,10 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
         valid: ``(T,)`` bool, the frames whose estimates are fitted (default all); the others
             (frames without points, whose estimates are stale) get the fit's value at their
             time. With no valid frame the poses are returned unchanged.
+        local_fit: None, or a callable ``(tv, y, t) -> (pos, vel)`` that stands in for the
+            local fit ``_local_fit(tv, y, window, iterations, scale, query=t)`` of the
+            positions ``y`` at the valid frames' times ``tv`` (:class:`CausalSmoother` passes
+            one that keeps the fits that can no longer change).
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
     t = np.asarray(frames, dtype=np.float64).reshape(-1)
@@ -269,7 +285,10 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     world = np.einsum("tij,tjk->tik", e, pose_to_matrix(poses))
     w = matrix_to_pose(world)[valid]  # (V, 4): yaw about the common frame's z
     tv = t[valid]
-    pos, vel = _local_fit(tv, w[:, :3], window, iterations, scale, query=t)
+    if local_fit is None:
+        pos, vel = _local_fit(tv, w[:, :3], window, iterations, scale, query=t)
+    else:
+        pos, vel = local_fit(tv, w[:, :3], t)
     travel = float(np.linalg.norm(pos[valid][-1, :2] - pos[valid][0, :2]))
     if travel < min_travel:  # parked or creeping: one robust line over the whole track,
         # unless the vehicle stopped or started within the track (a line through a stop
@@ -363,7 +382,9 @@ class CausalSmoother:
       smoother's own heading, measured worse, docs/model.md).
 
     Measured in docs/model.md, "Causal pose smoothing (online)". ``update`` costs one
-    :func:`smooth_track_poses` over the history: 2-4.5 ms per track and frame.
+    :func:`smooth_track_poses` over the history, whose local fits it keeps from frame to frame
+    where they can no longer change (only the newest ``window + 1`` frames' are refitted, and
+    the first frames' as the history drops its oldest): about 1 ms per track and frame.
     """
 
     def __init__(self, window: int = CAUSAL_WINDOW, history: int = CAUSAL_HISTORY,
@@ -381,6 +402,12 @@ class CausalSmoother:
         self._egos: deque = deque(maxlen=int(history))
         self._times: deque = deque(maxlen=int(history))
         self.detections = 0
+        self._seen = 0  # frames updated so far: the newest's number is _seen - 1
+        # local fits that can no longer change, by frame number: those whose whole window
+        # (+-window frames, with a sample) is in the history; with the fixed frame they
+        # were made in (True: the ego poses', False: the sensor's)
+        self._fits: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._fixed: bool | None = None
 
     def update(self, pose, has_points: bool, ego=None, time: float | None = None,
                rate_hz: float = 10.0) -> np.ndarray:
@@ -395,6 +422,7 @@ class CausalSmoother:
         self._valid.append(bool(has_points))
         self._egos.append(None if ego is None else np.asarray(ego, dtype=np.float64))
         self._times.append(np.nan if time is None else float(time))
+        self._seen += 1
         self.detections += bool(has_points)
         if self.detections < self.min_frames or not any(self._valid):
             return pose.copy()
@@ -404,12 +432,44 @@ class CausalSmoother:
             step = float(np.median(np.diff(times)))
             rate_hz = 1.0 / step if step > 0 else rate_hz
         n = len(self._poses)
+        if self._fixed is not (egos is not None):  # another frame: no kept fit holds
+            self._fits.clear()
+            self._fixed = egos is not None
         out = smooth_track_poses(np.stack(self._poses), np.arange(n, dtype=np.float64), egos,
                                  rate_hz=rate_hz, window=self.window,
-                                 valid=np.asarray(self._valid))[-1]
+                                 valid=np.asarray(self._valid),
+                                 local_fit=self._local_fit)[-1]
         if self.keep_front and abs(wrap_angle(out[3] - pose[3])) > math.pi / 2:
             out[3] = wrap_angle(out[3] + math.pi)  # the front stays the estimate's
         return out
+
+    def _local_fit(self, tv: np.ndarray, y: np.ndarray, t: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """``_local_fit(tv, y, window, iterations, scale, query=t)`` over the history (``t``: 0..n-1),
+        taking the kept fits of frames whose window has not changed since and keeping the new
+        ones whose window is complete: a fit uses the samples within ``window`` frames (and
+        their times relative to its own, exact for whole frame numbers), so it is final once
+        ``window`` newer frames exist, until the history drops a frame of its window."""
+        n, w = len(t), self.window
+        first = self._seen - n  # the number of the history's oldest frame
+        for k in [k for k in self._fits if k - w < first]:
+            del self._fits[k]
+        pos, vel = np.empty((n, y.shape[1])), np.empty((n, y.shape[1]))
+        todo = []
+        for i in range(n):
+            kept = self._fits.get(first + i)
+            if kept is None:
+                todo.append(i)
+            else:
+                pos[i], vel[i] = kept
+        if todo:
+            pos[todo], vel[todo] = _local_fit(tv, y, w, ITERATIONS, SCALE, query=t[todo])
+            has = np.zeros(n + 1, int)  # samples (frames with points) before each frame
+            has[1:] = np.cumsum(np.isin(t, tv))
+            for i in todo:
+                if i - w >= 0 and i + w <= n - 1 and has[i + w + 1] > has[i - w]:
+                    self._fits[first + i] = (pos[i].copy(), vel[i].copy())
+        return pos, vel
 
     def update_estimate(self, est, ego=None, time: float | None = None,
                         rate_hz: float = 10.0) -> None:
