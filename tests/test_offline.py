@@ -207,6 +207,35 @@ def test_offline_heading_flips_the_yaw_and_keeps_the_shape():
         np.testing.assert_allclose(e.complete, o.complete, atol=1e-6)
 
 
+def test_offline_smoothing_weighs_frames_as_configured():
+    """With frame weights configured, the offline poses are the whole-track smoother of the
+    online poses with :func:`frame_weights` of the points the network got (at most N per
+    frame); by default the weights are equal (off, as measured)."""
+    from seqshape.model.smooth import frame_weights, smooth_track_poses
+
+    est = _estimator()
+    points, egos = _track(frames=14, empty=6, seed=3)
+    points = [p[:k] for p, k in zip(points, [40, 5, 9, 40, 12, 40, 0, 7, 40, 40, 3, 40, 20, 40],
+                                    strict=True)]  # sparse frames among full ones
+    online = estimate_track(est, points, mode="online", track_id="t")
+    poses = np.array([o.pose for o in online])
+    counts = np.array([min(len(p), est.max_points) for p in points])
+    assert len(set(counts.tolist())) > 2  # the frames weigh differently
+    got = {}
+    for name, cfg_kw in (("weighted", {"full_points": 30, "ramp": 4}), ("default", {})):
+        cfg = OfflineConfig(heading=False, **cfg_kw)
+        got[name] = np.array([o.pose for o in estimate_track(est, points, ego_poses=egos,
+                                                             config=cfg, track_id="t")])
+        weights = frame_weights(counts, cfg.full_points, cfg.ramp)
+        want = smooth_track_poses(poses, np.arange(14.0), np.stack(egos), weights=weights)
+        np.testing.assert_allclose(got[name], want, atol=1e-5)
+    assert np.abs(got["weighted"][:, :2] - got["default"][:, :2]).max() > 1e-3
+    plain = OfflineConfig(heading=False)
+    assert plain.full_points is None and plain.ramp is None
+    with pytest.raises(ConfigError, match="OfflineConfig ramp"):
+        OfflineConfig(ramp=0)
+
+
 def test_bad_arguments_are_config_errors():
     est = _estimator()
     points, egos = _track()
@@ -527,9 +556,12 @@ def test_place_shapes_moves_each_shape_as_frame_by_frame(dtype):
 # --------------------------------------------------------------- the smoothing's local fits
 
 
-def _local_fit_reference(t, y, window, iterations, scale, max_deg=2, query=None):
+def _local_fit_reference(t, y, window, iterations, scale, max_deg=2, query=None, prior=None):
     """The robust local polynomial fit of ``seqshape.model.smooth`` query by query, with
-    ``numpy.linalg.lstsq`` on each query's own window (the code before it was batched)."""
+    ``numpy.linalg.lstsq`` on each query's own window (the code before it was batched), the
+    samples' ``prior`` weights times the Tukey weights (the prior alone where Tukey rejects
+    all)."""
+    prior = np.ones(len(t)) if prior is None else prior
     query = t if query is None else query
     val, slope = np.empty((len(query), y.shape[1])), np.zeros((len(query), y.shape[1]))
     for i, tq in enumerate(query):
@@ -541,14 +573,13 @@ def _local_fit_reference(t, y, window, iterations, scale, max_deg=2, query=None)
         if min(np.count_nonzero(dt < 0), np.count_nonzero(dt > 0)) < window / 2:
             deg = min(deg, 1)
         a = np.vander(dt, deg + 1, increasing=True)
-        w = np.ones(len(sel))
+        w = prior[sel]
         for _ in range(iterations + 1):
             sw = np.sqrt(w)[:, None]
             coef = np.linalg.lstsq(a * sw, y[sel] * sw, rcond=None)[0]
             u = np.linalg.norm(y[sel] - a @ coef, axis=1) / (4.685 * scale)
             w = np.where(u < 1, (1 - u ** 2) ** 2, 0.0)
-            if w.sum() < deg + 1:
-                w = np.ones(len(sel))
+            w = prior[sel] if w.sum() < deg + 1 else w * prior[sel]
         val[i] = coef[0]
         slope[i] = coef[1] if deg >= 1 else 0.0
     return val, slope
@@ -565,9 +596,10 @@ def test_local_fit_equals_the_per_query_least_squares():
         bad = rng.random(n) < 0.15  # outliers the robust weights reject
         y[bad] += rng.normal(0, 4, (int(bad.sum()), 3))
         query = None if case % 2 else np.arange(t[0] - 12, t[-1] + 12)  # queries off the ends
+        prior = None if case % 3 else rng.uniform(0.01, 1.0, n)  # the frames' weights
         for window, deg in ((8, 2), (np.inf, 1), (2, 2)):
-            got = _local_fit(t, y, window, 3, 0.3, deg, query)
-            want = _local_fit_reference(t, y, window, 3, 0.3, deg, query)
+            got = _local_fit(t, y, window, 3, 0.3, deg, query, prior)
+            want = _local_fit_reference(t, y, window, 3, 0.3, deg, query, prior)
             for g, w_ in zip(got, want, strict=True):
                 assert g.shape == w_.shape
                 np.testing.assert_allclose(g, w_, rtol=0, atol=1e-9)
@@ -595,24 +627,28 @@ def _noisy_drive(n=30, seed=3, noise=0.3):
 
 def test_causal_smoother_is_the_smoother_over_the_past_with_the_estimates_front():
     from seqshape.geometry import wrap_angle
-    from seqshape.model.smooth import CausalSmoother, smooth_track_poses
+    from seqshape.model.smooth import CausalSmoother, frame_weights, smooth_track_poses
 
     truth, est, egos = _noisy_drive()
     est[12, 3] += math.pi  # one estimate turned around: its front must stay as estimated
     valid = np.ones(len(est), bool)
     valid[8] = False  # a frame without points: not fitted, it gets the fit's value
+    counts = np.where(valid, 100 + 10 * np.arange(len(est)), 0)  # points per frame
+    weights = frame_weights(counts)  # as the smoother weighs them
     sm = CausalSmoother(window=5, history=64, min_frames=5)
-    out = np.array([sm.update(est[t], valid[t], egos[t], 0.1 * t) for t in range(len(est))])
+    out = np.array([sm.update(est[t], valid[t], egos[t], 0.1 * t, num_points=counts[t])
+                    for t in range(len(est))])
     # before the fifth frame with points the estimates pass through unchanged
     assert np.array_equal(out[:4], est[:4])
     for t in range(4, len(est)):  # after that: the whole-track smoother over frames <= t
         want = smooth_track_poses(est[:t + 1], np.arange(t + 1.0), np.stack(egos[:t + 1]),
-                                  window=5, valid=valid[:t + 1])[-1]
+                                  window=5, valid=valid[:t + 1], weights=weights[:t + 1])[-1]
         if abs(wrap_angle(want[3] - est[t, 3])) > math.pi / 2:
             want[3] = wrap_angle(want[3] + math.pi)
         np.testing.assert_allclose(out[t], want, atol=1e-9)
     assert abs(wrap_angle(out[12, 3] - est[12, 3])) < math.pi / 2
-    own = CausalSmoother(window=5, keep_front=False)  # the smoother's own heading instead
+    # the smoother's own heading instead, with equal weights (the smoother without them)
+    own = CausalSmoother(window=5, keep_front=False, full_points=None, ramp=None)
     mine = [own.update(est[t], valid[t], egos[t], 0.1 * t) for t in range(13)][-1]
     np.testing.assert_allclose(mine, smooth_track_poses(est[:13], np.arange(13.0),
                                                         np.stack(egos[:13]), window=5,
@@ -624,16 +660,62 @@ def test_causal_smoother_is_the_smoother_over_the_past_with_the_estimates_front(
     assert smooth < 0.8 * raw
 
 
+def test_frame_weights_by_hand():
+    from seqshape.model.smooth import frame_weights
+
+    counts = [0, 40, 320, 0, 80, 160]
+    # points: (n / 160)^2 up to 1; ramp 4: the k-th detection min(1, k / 4); none: 0
+    want = [0.0, (40 / 160) ** 2 * 1 / 4, 1.0 * 2 / 4, 0.0, (80 / 160) ** 2 * 3 / 4, 1.0]
+    np.testing.assert_allclose(frame_weights(counts, 160, 4), want, rtol=1e-12)
+    np.testing.assert_allclose(frame_weights(counts, None, None), [0, 1, 1, 0, 1, 1])
+    np.testing.assert_allclose(frame_weights(counts, 160, None)[[1, 2]], [1 / 16, 1.0])
+    with pytest.raises(ConfigError, match="frame_weights full_points"):
+        frame_weights(counts, 0)
+
+
+def test_smoother_weights_pull_the_fit_towards_the_dense_frames():
+    """A stretch of frames with few points whose estimates are off by 25 cm (not far enough
+    for the robust weights to reject them): weighted, the fit stays near the dense frames;
+    weight 0 is a frame left out (as an invalid one); bad weights are refused."""
+    from seqshape.model.smooth import frame_weights, smooth_track_poses
+
+    n = 30
+    truth = np.c_[10 + 0.8 * np.arange(n), np.full(n, 4.0), np.zeros(n), np.zeros(n)]
+    est = truth.copy()
+    est[10:16, 1] += 0.25  # the sparse frames' estimates, biased sideways
+    counts = np.full(n, 400)
+    counts[10:16] = 16
+    eye = np.broadcast_to(np.eye(4), (n, 4, 4))
+    plain = smooth_track_poses(est, np.arange(n), eye)
+    weighted = smooth_track_poses(est, np.arange(n), eye, weights=frame_weights(counts))
+    # unweighted the bias comes through; weighted (1/100 of a dense frame) almost none of it
+    assert np.abs(plain[12, 1] - 4.0) > 0.1
+    assert np.abs(weighted[12, 1] - 4.0) < 0.02
+    keep = np.ones(n, bool)
+    keep[10:16] = False
+    zero = np.where(keep, 1.0, 0.0)
+    np.testing.assert_allclose(smooth_track_poses(est, np.arange(n), eye, weights=zero),
+                               smooth_track_poses(est, np.arange(n), eye, valid=keep),
+                               atol=1e-12)
+    for bad in (np.ones(n - 1), np.r_[np.ones(n - 1), -1.0], np.r_[np.ones(n - 1), np.nan]):
+        with pytest.raises(ValueError, match="weights"):
+            smooth_track_poses(est, np.arange(n), eye, weights=bad)
+
+
 def test_causal_smoother_history_is_bounded_and_arguments_checked():
-    from seqshape.model.smooth import CausalSmoother, smooth_track_poses
+    from seqshape.model.smooth import CausalSmoother, frame_weights, smooth_track_poses
 
     _, est, egos = _noisy_drive(n=20)
     sm = CausalSmoother(window=3, history=8, min_frames=2)
     for t in range(20):
         got = sm.update(est[t], True, egos[t])
-    want = smooth_track_poses(est[12:], np.arange(8.0), np.stack(egos[12:]), window=3)[-1]
+    # the ramp's weights count the track's detections, not the history's
+    want = smooth_track_poses(est[12:], np.arange(8.0), np.stack(egos[12:]), window=3,
+                              weights=frame_weights(np.ones(20))[12:])[-1]
     np.testing.assert_allclose(got, want, atol=1e-9)
-    for bad in ({"window": 0}, {"history": 1}, {"min_frames": 0.5}, {"window": True}):
+    for bad in ({"window": 0}, {"history": 1}, {"min_frames": 0.5}, {"window": True},
+                {"full_points": 0}, {"ramp": -1.0}, {"ramp": float("nan")},
+                {"full_points": "160"}):
         with pytest.raises(ConfigError, match="CausalSmoother"):
             CausalSmoother(**bad)
 
@@ -643,7 +725,7 @@ def test_causal_smoother_kept_fits_equal_the_smoother_over_its_history():
     complete) give, at every frame, the smoother's own result over the remembered history:
     through the history's bound, runs of frames without points, a parked stretch and a frame
     without an ego pose (the fit moves to the sensor frames, then back)."""
-    from seqshape.model.smooth import CausalSmoother, smooth_track_poses
+    from seqshape.model.smooth import CausalSmoother, frame_weights, smooth_track_poses
 
     _, est, egos = _noisy_drive(n=90, seed=5)
     est[40:60, :2] = est[40, :2] + np.random.default_rng(2).normal(0, 0.2, (20, 2))  # parked
@@ -651,10 +733,12 @@ def test_causal_smoother_kept_fits_equal_the_smoother_over_its_history():
     valid[[9, 10, 11, 12, 13, 14, 15, 30, 71]] = False
     egos = list(egos)
     egos[50] = None
-    sm = CausalSmoother(window=3, history=16, min_frames=2)
+    counts = np.where(valid, np.random.default_rng(4).integers(5, 400, len(est)), 0)
+    weights = frame_weights(counts, full_points=160, ramp=8)
+    sm = CausalSmoother(window=3, history=16, min_frames=2, full_points=160, ramp=8)
     kept = 0
     for t in range(len(est)):
-        got = sm.update(est[t], valid[t], egos[t], 0.1 * t)
+        got = sm.update(est[t], valid[t], egos[t], 0.1 * t, num_points=counts[t])
         lo = max(0, t - 15)
         if valid[: t + 1].sum() < 2:
             np.testing.assert_array_equal(got, est[t])
@@ -662,7 +746,7 @@ def test_causal_smoother_kept_fits_equal_the_smoother_over_its_history():
         frames = egos[lo:t + 1]
         ego = None if any(e is None for e in frames) else np.stack(frames)
         want = smooth_track_poses(est[lo:t + 1], np.arange(t + 1.0 - lo), ego, window=3,
-                                  valid=valid[lo:t + 1])[-1]
+                                  valid=valid[lo:t + 1], weights=weights[lo:t + 1])[-1]
         if abs(wrap_angle(want[3] - est[t, 3])) > math.pi / 2:
             want[3] = wrap_angle(want[3] + math.pi)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)

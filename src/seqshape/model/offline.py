@@ -70,7 +70,13 @@ from seqshape.model.heading import (
     pose_yaw,
     wrap_angle,
 )
-from seqshape.model.smooth import CausalSmoother, place_shapes, smooth_track_poses
+from seqshape.model.smooth import (
+    CausalSmoother,
+    check_weighting,
+    frame_weights,
+    place_shapes,
+    smooth_track_poses,
+)
 
 MODES = ("online", "offline")
 SHAPE_SOURCES = ("online", "final", "two-pass", "bidirectional")
@@ -96,6 +102,14 @@ class OfflineConfig:
     vote_decay: float = 0.95
     """Whole-track heading vote: weight ``vote_decay ** |t - j|`` of frame j's yaw at frame
     t (1 = a plain majority over the whole track)."""
+    full_points: float | None = None
+    """The smoothing's frame weights (:func:`seqshape.model.smooth.frame_weights`): points
+    at which a frame's estimate counts fully (None: no weighting by points). Off by default:
+    the causal smoother gains from it, the whole-track smoother loses (docs/model.md,
+    "Causal pose smoothing (online)")."""
+    ramp: float | None = None
+    """The smoothing's frame weights: detections over which a track's first online estimates
+    weigh less (None: no ramp; off by default, as ``full_points``)."""
 
     def __post_init__(self):
         if self.shape not in SHAPE_SOURCES:
@@ -107,6 +121,7 @@ class OfflineConfig:
         if not 0.0 < float(self.vote_decay) <= 1.0:
             raise ConfigError(f"OfflineConfig.vote_decay must be in (0, 1], got "
                               f"{self.vote_decay}")
+        check_weighting("OfflineConfig", self.full_points, self.ramp)
 
     @property
     def two_pass(self) -> bool:
@@ -294,7 +309,8 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
         passes["bidirectional"] = _bidirectional(p.frames, first, p.passes["backward"])
     poses = passes[cfg.pose]["pose"].copy()
     if cfg.smooth:
-        poses = _smooth(poses, p.counts > 0, p.egos, p.times)
+        poses = _smooth(poses, frame_weights(p.counts, cfg.full_points, cfg.ramp), p.egos,
+                        p.times)
     if cfg.shape == "final":
         complete = np.broadcast_to(first["complete"][last], first["complete"].shape)
         own = np.broadcast_to(first["pose"][last], poses.shape)
@@ -339,11 +355,12 @@ def _bidirectional(frames: list[np.ndarray], first: dict, back: dict) -> dict:
     return {"pose": pose, "complete": place_shapes(complete, own, pose)}
 
 
-def _smooth(poses: np.ndarray, valid: np.ndarray, egos, times: np.ndarray | None
+def _smooth(poses: np.ndarray, weights: np.ndarray, egos, times: np.ndarray | None
             ) -> np.ndarray:
     """:func:`seqshape.model.smooth.smooth_track_poses` of the poses over the frame index
-    (its window counts frames), at the frame rate of the timestamps (10 Hz without them);
-    in the fixed frame of the ego poses when every frame has one."""
+    (its window counts frames) with the frames' ``weights`` (0: not fitted), at the frame
+    rate of the timestamps (10 Hz without them); in the fixed frame of the ego poses when
+    every frame has one."""
     rate = 10.0
     if times is not None and len(times) > 1:
         step = float(np.median(np.diff(times)))
@@ -352,7 +369,7 @@ def _smooth(poses: np.ndarray, valid: np.ndarray, egos, times: np.ndarray | None
     if egos is not None and all(e is not None for e in egos):
         ego = np.stack(egos)
     return smooth_track_poses(poses, np.arange(len(poses), dtype=np.float64), ego,
-                              rate_hz=rate, valid=valid)
+                              rate_hz=rate, weights=weights)
 
 
 def _frames(estimator, points: Sequence[np.ndarray], track_id: str

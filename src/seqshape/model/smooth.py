@@ -43,11 +43,12 @@ from seqshape.geometry import matrix_to_pose, pose_to_matrix, wrap_angle, yaw_to
 
 
 def _local_fit(t: np.ndarray, y: np.ndarray, window: float, iterations: int,
-               scale: float, max_deg: int = 2, query: np.ndarray | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+               scale: float, max_deg: int = 2, query: np.ndarray | None = None,
+               prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Robust local polynomial (degree ``max_deg``) fit of ``y (T, D)`` over times ``t (T,)``,
     evaluated at ``query (Q,)`` (default ``t``): (values, slopes), each ``(Q, D)``. A query
-    with no sample within ``window`` uses the nearest samples' window.
+    with no sample within ``window`` uses the nearest samples' window. ``prior (T,)``: the
+    samples' weights, multiplied into the robust (Tukey) weights (None: equal).
 
     All queries are fitted at once: each query's window is padded to the longest with rows
     of weight 0 and a degree below ``max_deg`` leaves its higher columns at zero, so the
@@ -63,21 +64,21 @@ def _local_fit(t: np.ndarray, y: np.ndarray, window: float, iterations: int,
     if math.isinf(window):  # every query's window is the whole track, every fit one-sided
         # (degree <= 1): one fit, at the samples' mid-time, evaluated along its line
         mid = np.array([0.5 * (t.min() + t.max())])
-        v, s = _local_fit_batch(t, y, window, iterations, scale, max_deg, mid)
+        v, s = _local_fit_batch(t, y, window, iterations, scale, max_deg, mid, prior)
         return v + s * (query - mid)[:, None], np.repeat(s, len(query), axis=0)
     # queries in chunks that keep the padded windows to a few million cells
     step = max(1, _CELLS // max(1, len(t) * (max_deg + 1) * max(1, y.shape[1])))
     for lo in range(0, len(query), step):
         part = slice(lo, lo + step)
         val[part], slope[part] = _local_fit_batch(t, y, window, iterations, scale, max_deg,
-                                                  query[part])
+                                                  query[part], prior)
     return val, slope
 
 
 _CELLS = 4_000_000  #: padded window cells per batch of queries in _local_fit
 
 
-def _local_fit_batch(t, y, window, iterations, scale, max_deg, query):
+def _local_fit_batch(t, y, window, iterations, scale, max_deg, query, prior=None):
     offset = np.abs(t[None, :] - query[:, None])  # (Q, T)
     inside = offset <= window
     lonely = ~inside.any(axis=1)
@@ -102,15 +103,17 @@ def _local_fit_batch(t, y, window, iterations, scale, max_deg, query):
     ys = y[idx]  # (Q, M, D)
     count = valid.sum(axis=1)
     cutoff = np.finfo(np.float64).eps * np.maximum(count, deg + 1)
-    w = valid.astype(np.float64)
+    w0 = valid.astype(np.float64) if prior is None else np.where(valid, prior[idx], 0.0)
+    w = w0
     for _ in range(iterations + 1):
         sw = np.sqrt(w)[:, :, None]
         coef = np.linalg.pinv(a * sw, rcond=cutoff) @ (ys * sw)  # (Q, P, D)
         r = np.linalg.norm(ys - a @ coef, axis=2)
         u = r / (4.685 * scale)
-        w = np.where(valid & (u < 1), (1 - u ** 2) ** 2, 0.0)
-        rejected = w.sum(axis=1) < deg + 1  # everything rejected: fall back to equal weights
-        w[rejected] = valid[rejected]
+        tukey = np.where(valid & (u < 1), (1 - u ** 2) ** 2, 0.0)
+        rejected = tukey.sum(axis=1) < deg + 1  # everything rejected: the prior weights alone
+        w = tukey if prior is None else tukey * w0
+        w[rejected] = w0[rejected]
     slope = np.where((deg >= 1)[:, None], coef[:, min(1, max_deg)], 0.0)
     return coef[:, 0], slope
 
@@ -223,6 +226,50 @@ def axial_mean(angles) -> float:
     return float(wrap_angle(axis if forward.mean() >= 0.5 else axis + np.pi))
 
 
+#: Points (after the network's subset) at which a frame's estimate counts fully in the
+#: smoothers' position fits; a frame with n < FULL_POINTS points weighs (n / FULL_POINTS)^2
+#: (:func:`frame_weights`).
+FULL_POINTS = 160
+#: Detections over which a track's first estimates weigh less in the smoothers' fits: the
+#: k-th detection weighs min(1, k / RAMP) (:func:`frame_weights`).
+RAMP = 16
+
+
+def frame_weights(counts, full_points: float | None = FULL_POINTS,
+                  ramp: float | None = RAMP) -> np.ndarray:
+    """``(T,)`` weights of a track's frame estimates in the smoothers' position fits, from the
+    points each frame had, ``counts (T,)``: ``min(1, n / full_points) ** 2`` (an estimate from
+    a few points is noisier: its centre error grows as the points thin out) times
+    ``min(1, k / ramp)`` at the track's k-th frame with points (the sequential model's first
+    estimates have fused little). None turns a factor off. A frame without points weighs 0.
+    Measured in docs/model.md, "Causal pose smoothing (online)"."""
+    counts = np.asarray(counts, dtype=np.float64).reshape(-1)
+    check_weighting("frame_weights", full_points, ramp)
+    return _weights(counts, np.cumsum(counts > 0), full_points, ramp)
+
+
+def _weights(counts: np.ndarray, detections: np.ndarray, full_points, ramp) -> np.ndarray:
+    """:func:`frame_weights` of frames with ``counts`` points at their track's
+    ``detections``-th frame with points."""
+    w = (counts > 0).astype(np.float64)
+    if full_points is not None:
+        w *= np.minimum(1.0, counts / float(full_points)) ** 2
+    if ramp is not None:
+        w *= np.minimum(1.0, detections / float(ramp))
+    return w
+
+
+def check_weighting(owner: str, full_points, ramp) -> None:
+    """Raise a ConfigError naming ``owner`` unless ``full_points`` and ``ramp`` (of
+    :func:`frame_weights`) are each None or a positive finite number."""
+    for name, value in (("full_points", full_points), ("ramp", ramp)):
+        if value is not None and (isinstance(value, bool) or not isinstance(
+                value, int | float | np.integer | np.floating) or not value > 0
+                or not math.isfinite(value)):
+            raise ConfigError(f"{owner} {name} must be a positive number or None, got "
+                              f"{value!r}")
+
+
 #: Robust reweighting rounds of the smoother's fits (:func:`smooth_track_poses`).
 ITERATIONS = 3
 #: Residual scale (m) of the smoother's Tukey weights (:func:`smooth_track_poses`).
@@ -234,7 +281,7 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
                        min_speed: float = 1.0, valid=None, line_tolerance: float = 0.05,
                        line_sigmas: float = 1.7, parked_constant: bool = True,
                        sideslip: bool = True, blend: bool = True, *,
-                       local_fit=None) -> np.ndarray:
+                       local_fit=None, weights=None) -> np.ndarray:
     """Smoothed ``(T, 4)`` sensor-frame poses of one track (module doc).
 
     Args:
@@ -266,10 +313,14 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
         valid: ``(T,)`` bool, the frames whose estimates are fitted (default all); the others
             (frames without points, whose estimates are stale) get the fit's value at their
             time. With no valid frame the poses are returned unchanged.
-        local_fit: None, or a callable ``(tv, y, t) -> (pos, vel)`` that stands in for the
-            local fit ``_local_fit(tv, y, window, iterations, scale, query=t)`` of the
-            positions ``y`` at the valid frames' times ``tv`` (:class:`CausalSmoother` passes
-            one that keeps the fits that can no longer change).
+        weights: ``(T,)`` non-negative weights of the frames' estimates in the position fits
+            (:func:`frame_weights`), multiplied into the robust weights; a frame of weight 0
+            is not fitted, as an invalid one. None: equal weights.
+        local_fit: None, or a callable ``(tv, y, t, prior) -> (pos, vel)`` that stands in for
+            the local fit ``_local_fit(tv, y, window, iterations, scale, query=t,
+            prior=prior)`` of the positions ``y`` at the valid frames' times ``tv`` with their
+            weights ``prior`` (:class:`CausalSmoother` passes one that keeps the fits that can
+            no longer change).
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
     t = np.asarray(frames, dtype=np.float64).reshape(-1)
@@ -278,6 +329,13 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     if len(poses) == 0:
         return poses.copy()
     valid = np.ones(len(t), bool) if valid is None else np.asarray(valid, bool).reshape(-1)
+    prior = None
+    if weights is not None:
+        weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+        if len(weights) != len(t) or not np.all(np.isfinite(weights)) or np.any(weights < 0):
+            raise ValueError(f"weights must be {len(t)} finite non-negative numbers")
+        valid = valid & (weights > 0)
+        prior = weights[valid]
     if not valid.any():
         return poses.copy()
     e = np.broadcast_to(np.eye(4), (len(t), 4, 4)) if ego is None else np.asarray(
@@ -286,9 +344,9 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
     w = matrix_to_pose(world)[valid]  # (V, 4): yaw about the common frame's z
     tv = t[valid]
     if local_fit is None:
-        pos, vel = _local_fit(tv, w[:, :3], window, iterations, scale, query=t)
+        pos, vel = _local_fit(tv, w[:, :3], window, iterations, scale, query=t, prior=prior)
     else:
-        pos, vel = local_fit(tv, w[:, :3], t)
+        pos, vel = local_fit(tv, w[:, :3], t, prior)
     travel = float(np.linalg.norm(pos[valid][-1, :2] - pos[valid][0, :2]))
     if travel < min_travel:  # parked or creeping: one robust line over the whole track,
         # unless the vehicle stopped or started within the track (a line through a stop
@@ -296,7 +354,7 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
         # estimates' noise lets the local fit wander (sigma from its residuals)
         sigma = _noise(w[:, :2] - pos[valid, :2])
         line, line_vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=1,
-                                    query=t)
+                                    query=t, prior=prior)
         off = np.linalg.norm(line[valid, :2] - pos[valid, :2], axis=1)
         if float(np.quantile(off, 0.95)) <= line_tolerance + line_sigmas * sigma:
             pos, vel = line, line_vel
@@ -307,7 +365,7 @@ def smooth_track_poses(poses, frames, ego=None, rate_hz: float = 10.0, window: i
             drift = float(np.linalg.norm(line_vel[0, :2])) * span
             if parked_constant and drift <= 2.5 * sigma * np.sqrt(12.0 / len(tv)):
                 pos, vel = _local_fit(tv, w[:, :3], np.inf, iterations, scale, max_deg=0,
-                                      query=t)
+                                      query=t, prior=prior)
     speed = np.linalg.norm(vel[:, :2], axis=1) * rate_hz  # m/s
     yaw = np.full(len(t), axial_mean(w[:, 3]))
     if travel >= min_travel:
@@ -381,6 +439,10 @@ class CausalSmoother:
       more than 90 degrees from the estimate's is turned by pi (``keep_front=False``: the
       smoother's own heading, measured worse, docs/model.md).
 
+    Each frame's estimate weighs in the position fits by :func:`frame_weights` of the points
+    it had (``full_points``) and of how many detections the track had then (``ramp``); None
+    turns either off (equal weights, the smoother before session 30).
+
     Measured in docs/model.md, "Causal pose smoothing (online)". ``update`` costs one
     :func:`smooth_track_poses` over the history, whose local fits it keeps from frame to frame
     where they can no longer change (only the newest ``window + 1`` frames' are refitted, and
@@ -388,17 +450,21 @@ class CausalSmoother:
     """
 
     def __init__(self, window: int = CAUSAL_WINDOW, history: int = CAUSAL_HISTORY,
-                 min_frames: int = CAUSAL_MIN_FRAMES, keep_front: bool = True):
+                 min_frames: int = CAUSAL_MIN_FRAMES, keep_front: bool = True,
+                 full_points: float | None = FULL_POINTS, ramp: float | None = RAMP):
         for name, value, low in (("window", window, 1), ("history", history, 2),
                                  ("min_frames", min_frames, 1)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) \
                     or value < low:
                 raise ConfigError(f"CausalSmoother {name} must be a whole number >= {low}, "
                                   f"got {value!r}")
+        check_weighting("CausalSmoother", full_points, ramp)
         self.window, self.min_frames = int(window), int(min_frames)
         self.keep_front = bool(keep_front)
+        self.full_points, self.ramp = full_points, ramp
         self._poses: deque = deque(maxlen=int(history))
         self._valid: deque = deque(maxlen=int(history))
+        self._weights: deque = deque(maxlen=int(history))
         self._egos: deque = deque(maxlen=int(history))
         self._times: deque = deque(maxlen=int(history))
         self.detections = 0
@@ -410,13 +476,14 @@ class CausalSmoother:
         self._fixed: bool | None = None
 
     def update(self, pose, has_points: bool, ego=None, time: float | None = None,
-               rate_hz: float = 10.0) -> np.ndarray:
+               rate_hz: float = 10.0, num_points: int | None = None) -> np.ndarray:
         """The smoothed ``(4,)`` pose of this frame given its estimated ``pose`` (sensor
         frame), whether the frame had points (a frame without them is not fitted, it gets the
         fit's value), its ``ego`` pose ((4, 4) sensor -> fixed frame, or None: the fit is
-        made in the sensor frames unless every remembered frame has one) and its ``time``
+        made in the sensor frames unless every remembered frame has one), its ``time``
         (s; the frame rate for the smoother's speed threshold comes from the remembered
-        times, else ``rate_hz``)."""
+        times, else ``rate_hz``) and how many points it had (``num_points``: its weight in
+        the fits, :func:`frame_weights`; None: as many as count fully)."""
         pose = np.asarray(pose, dtype=np.float64).reshape(4)
         self._poses.append(pose.copy())
         self._valid.append(bool(has_points))
@@ -424,6 +491,10 @@ class CausalSmoother:
         self._times.append(np.nan if time is None else float(time))
         self._seen += 1
         self.detections += bool(has_points)
+        n = np.inf if num_points is None else float(num_points)
+        self._weights.append(float(_weights(np.array([n if has_points else 0.0]),
+                                            np.array([self.detections]), self.full_points,
+                                            self.ramp)[0]))
         if self.detections < self.min_frames or not any(self._valid):
             return pose.copy()
         egos = None if any(e is None for e in self._egos) else np.stack(self._egos)
@@ -438,18 +509,20 @@ class CausalSmoother:
         out = smooth_track_poses(np.stack(self._poses), np.arange(n, dtype=np.float64), egos,
                                  rate_hz=rate_hz, window=self.window,
                                  valid=np.asarray(self._valid),
-                                 local_fit=self._local_fit)[-1]
+                                 local_fit=self._local_fit,
+                                 weights=np.asarray(self._weights))[-1]
         if self.keep_front and abs(wrap_angle(out[3] - pose[3])) > math.pi / 2:
             out[3] = wrap_angle(out[3] + math.pi)  # the front stays the estimate's
         return out
 
-    def _local_fit(self, tv: np.ndarray, y: np.ndarray, t: np.ndarray
+    def _local_fit(self, tv: np.ndarray, y: np.ndarray, t: np.ndarray, prior=None
                    ) -> tuple[np.ndarray, np.ndarray]:
-        """``_local_fit(tv, y, window, iterations, scale, query=t)`` over the history (``t``: 0..n-1),
-        taking the kept fits of frames whose window has not changed since and keeping the new
-        ones whose window is complete: a fit uses the samples within ``window`` frames (and
-        their times relative to its own, exact for whole frame numbers), so it is final once
-        ``window`` newer frames exist, until the history drops a frame of its window."""
+        """``_local_fit(tv, y, window, iterations, scale, query=t, prior=prior)`` over the
+        history (``t``: 0..n-1), taking the kept fits of frames whose window has not changed
+        since and keeping the new ones whose window is complete: a fit uses the samples within
+        ``window`` frames (their times relative to its own, exact for whole frame numbers, and
+        their weights, fixed when a frame is added), so it is final once ``window`` newer
+        frames exist, until the history drops a frame of its window."""
         n, w = len(t), self.window
         first = self._seen - n  # the number of the history's oldest frame
         for k in [k for k in self._fits if k - w < first]:
@@ -463,7 +536,8 @@ class CausalSmoother:
             else:
                 pos[i], vel[i] = kept
         if todo:
-            pos[todo], vel[todo] = _local_fit(tv, y, w, ITERATIONS, SCALE, query=t[todo])
+            pos[todo], vel[todo] = _local_fit(tv, y, w, ITERATIONS, SCALE, query=t[todo],
+                                              prior=prior)
             has = np.zeros(n + 1, int)  # samples (frames with points) before each frame
             has[1:] = np.cumsum(np.isin(t, tv))
             for i in todo:
@@ -476,7 +550,7 @@ class CausalSmoother:
         """:meth:`update` with an estimate (``.pose``, ``.complete``, ``.num_points``, e.g. a
         :class:`~seqshape.model.estimator.Estimate`), in place: the pose replaced by the
         smoothed one and the complete shape moved rigidly with it."""
-        new = self.update(est.pose, est.num_points > 0, ego, time, rate_hz)
+        new = self.update(est.pose, est.num_points > 0, ego, time, rate_hz, est.num_points)
         if not np.array_equal(new, est.pose):
             est.complete = place_shapes(est.complete[None], est.pose[None], new[None])[0]
             est.pose = new
