@@ -718,6 +718,9 @@ def test_causal_smoother_history_is_bounded_and_arguments_checked():
                 {"full_points": "160"}):
         with pytest.raises(ConfigError, match="CausalSmoother"):
             CausalSmoother(**bad)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ConfigError, match="num_points"):
+            sm.update(est[0], True, egos[0], num_points=bad)
 
 
 def test_causal_smoother_kept_fits_equal_the_smoother_over_its_history():

@@ -484,6 +484,10 @@ class CausalSmoother:
         (s; the frame rate for the smoother's speed threshold comes from the remembered
         times, else ``rate_hz``) and how many points it had (``num_points``: its weight in
         the fits, :func:`frame_weights`; None: as many as count fully)."""
+        if num_points is not None and (isinstance(num_points, bool) or not isinstance(
+                num_points, int | np.integer) or num_points < 0):
+            raise ConfigError(f"CausalSmoother.update num_points must be a whole number >= 0 "
+                              f"or None, got {num_points!r}")
         pose = np.asarray(pose, dtype=np.float64).reshape(4)
         self._poses.append(pose.copy())
         self._valid.append(bool(has_points))
