@@ -88,7 +88,8 @@ CONFIGS = [OfflineConfig(),
            OfflineConfig(shape="two-pass", pose="two-pass", smooth=False, heading=False),
            OfflineConfig(shape="final", pose="online", smooth=False),
            OfflineConfig(shape="bidirectional", pose="bidirectional"),
-           OfflineConfig(shape="final", pose="two-pass", heading=False)]
+           OfflineConfig(shape="final", pose="two-pass", heading=False),
+           OfflineConfig(shape="average", shape_decay=1.0)]
 
 
 @pytest.mark.parametrize("cfg", CONFIGS, ids=lambda c: c.name)
@@ -194,7 +195,7 @@ def test_consistent_flips_of_a_parked_vehicle_follow_the_track_majority():
 def test_offline_heading_flips_the_yaw_and_keeps_the_shape():
     est = _estimator()
     points, egos = _track()
-    cfg = OfflineConfig(smooth=False, heading=True)
+    cfg = OfflineConfig(shape="online", smooth=False, heading=True)
     online = estimate_track(est, points, mode="online", track_id="t",
                             config=OfflineConfig(heading=False))
     out = estimate_track(est, points, ego_poses=egos, config=cfg, track_id="t")
@@ -702,6 +703,81 @@ def test_smoother_weights_pull_the_fit_towards_the_dense_frames():
             smooth_track_poses(est, np.arange(n), eye, weights=bad)
 
 
+def _shapes_track(n=12, k=40, seed=0, noise=0.05):
+    """A canonical shape, and per frame: poses, that shape plus i.i.d. noise placed with them
+    (in the sensor frame), and random weights with some zeros."""
+    from seqshape.geometry import canonical_to_sensor
+
+    rng = np.random.default_rng(seed)
+    truth = rng.uniform(-1, 1, (k, 3)) * [2.2, 0.9, 0.7]
+    poses = np.c_[rng.uniform(5, 30, (n, 2)), rng.normal(0, 0.1, n), rng.uniform(-3, 3, n)]
+    noisy = truth + rng.normal(0, noise, (n, k, 3))
+    complete = np.stack([canonical_to_sensor(c, p) for c, p in zip(noisy, poses, strict=True)])
+    weights = rng.uniform(0.1, 1.0, n)
+    weights[[0, 5, 6]] = 0.0
+    return truth, poses, complete.astype(np.float32), weights
+
+
+def test_average_shapes_equals_the_weighted_sum_by_hand():
+    from seqshape.model.smooth import average_shapes
+
+    truth, poses, complete, weights = _shapes_track()
+    can = np.stack([sensor_to_canonical(c.astype(np.float64), p)
+                    for c, p in zip(complete, poses, strict=True)])
+    n = len(poses)
+    for causal in (True, False):
+        for decay in (0.7, 1.0):
+            got = average_shapes(complete, poses, weights, decay, causal=causal)
+            for t in range(n):
+                j = np.arange(n) if not causal else np.arange(t + 1)
+                w = weights[j] * decay ** np.abs(t - j)
+                if w.sum() == 0:  # frame 0: nothing weighed yet, its own shape
+                    np.testing.assert_array_equal(got[t], complete[t])
+                    continue
+                want = np.tensordot(w / w.sum(), can[j], axes=1)
+                np.testing.assert_allclose(sensor_to_canonical(got[t], poses[t]), want,
+                                           atol=1e-5)
+    # the average is nearer the true shape than the frames are (i.i.d. noise: about
+    # 1 / sqrt(frames) of it)
+    own = np.abs(can[1:] - truth).mean()
+    mean = np.abs(np.stack([sensor_to_canonical(g, p) for g, p in zip(
+        average_shapes(complete, poses, weights, 1.0, causal=False), poses, strict=True)])
+        - truth).mean()
+    assert mean < 0.45 * own
+    with pytest.raises(ConfigError, match="shape_decay"):
+        average_shapes(complete, poses, weights, 0.0)
+    with pytest.raises(ValueError, match="one track"):
+        average_shapes(complete, poses[:-1], weights)
+
+
+def test_causal_smoother_shape_average_and_rigid_shapes_without_it():
+    """``update_estimate`` replaces the shape by the causal :func:`average_shapes` of the
+    track (in the decoder's frames: a flipped estimate's yaw is turned back first), placed
+    with the smoothed pose; with ``shape_decay=None`` the shape only moves with the pose."""
+    from types import SimpleNamespace
+
+    from seqshape.model.smooth import CausalSmoother, average_shapes, frame_weights
+
+    _, poses, complete, weights = _shapes_track(n=10, seed=2)
+    counts = np.where(weights > 0, (weights * 300).astype(int), 0)
+    flipped = np.zeros(10, bool)
+    flipped[7] = True  # the heading step turned this yaw and kept the shape
+    est_poses = poses.copy()
+    est_poses[7, 3] = wrap_angle(est_poses[7, 3] + math.pi)
+    mean = average_shapes(complete, poses, frame_weights(counts), 0.8)
+    for decay in (0.8, None):
+        sm = CausalSmoother(min_frames=50, shape_decay=decay)  # poses left as they are
+        for t in range(10):
+            e = SimpleNamespace(pose=est_poses[t].copy(), complete=complete[t].copy(),
+                                num_points=int(counts[t]), flipped=bool(flipped[t]))
+            sm.update_estimate(e)
+            np.testing.assert_array_equal(e.pose, est_poses[t])
+            want = complete[t] if decay is None else mean[t]
+            np.testing.assert_allclose(e.complete, want, atol=1e-5)
+    with pytest.raises(ConfigError, match="shape_decay"):
+        CausalSmoother(shape_decay=1.5)
+
+
 def test_causal_smoother_history_is_bounded_and_arguments_checked():
     from seqshape.model.smooth import CausalSmoother, frame_weights, smooth_track_poses
 
@@ -769,9 +845,21 @@ def test_causal_smoothing_online_mode_equals_stepping():
     plain = _step_all(est, points, egos, times)
     moved = [not np.allclose(a.pose, b.pose) for a, b in zip(stepped, plain, strict=True)]
     assert not any(moved[:4]) and any(moved[4:])  # from the fifth frame with points on
-    for a, b in zip(stepped, plain, strict=True):  # the shape moves rigidly with the pose
-        np.testing.assert_allclose(sensor_to_canonical(a.complete, a.pose),
-                                   sensor_to_canonical(b.complete, b.pose), atol=1e-4)
+    # the shape: the track's causal shape average (in the decoder's frames: a heading flip
+    # turned the yaw and kept the shape), moved rigidly with the smoothed pose
+    from seqshape.model.smooth import SHAPE_DECAY, average_shapes, frame_weights
+
+    def decoder_frame(e):
+        return e.pose + np.array([0.0, 0.0, 0.0, math.pi if e.flipped else 0.0])
+
+    counts = [min(len(p), est.max_points) for p in points]
+    mean = average_shapes(np.stack([b.complete for b in plain]),
+                          np.stack([decoder_frame(b) for b in plain]), frame_weights(counts),
+                          SHAPE_DECAY)
+    for a, b, m in zip(stepped, plain, mean, strict=True):
+        np.testing.assert_allclose(sensor_to_canonical(a.complete, decoder_frame(a)),
+                                   sensor_to_canonical(m, decoder_frame(b)), atol=1e-4)
+    assert not np.allclose(stepped[-1].complete, plain[-1].complete, atol=1e-3)
     with pytest.raises(ConfigError, match="smoothing"):
         est.smoothing = "kalman"
 

@@ -69,8 +69,9 @@ class EvaluateConfig:
     max_points: the most points of a frame fed to each network (a seeded subset of a larger
         frame; None: the model's own num_points). Fewer is faster and less accurate
         (docs/model.md, "Fewer points per frame").
-    smoothing: the sequential model's online pose smoothing (Estimator.smoothing): 'none' or
-        'causal' (each estimate a robust fit over the track's past estimates; docs/model.md,
+    smoothing: the sequential model's online smoothing (Estimator.smoothing): 'none' or
+        'causal' (each pose a robust fit over the track's past estimates, each shape the
+        average of its past shapes; docs/model.md,
         "Causal pose smoothing (online)"). The per-frame baseline stays per frame, and the
         offline mode has its own whole-track smoothing, so it is refused with --offline.
     """

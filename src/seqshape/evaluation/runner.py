@@ -595,7 +595,7 @@ def _floors(tracks: list[Track], n_preds: set[int], floor: str, seed: int,
 def _mode(est) -> str:
     """``"offline"`` for a whole-track estimator of a recurrent model, else ``"online"``;
     ``" + placement refiner"`` after it when the estimator refines its placements, and
-    ``" + causal smoothing"`` when an online one smooths its poses (``Estimator.smoothing``)."""
+    ``" + causal smoothing"`` when an online one smooths its track (``Estimator.smoothing``)."""
     mode = "offline" if is_whole_track(est) and getattr(est, "recurrent", False) else "online"
     inner = getattr(est, "estimator", est)
     smoothed = mode == "online" and getattr(inner, "smoothing", "none") == "causal"

@@ -217,8 +217,9 @@ class Estimator:
             about 1.7x the updates/s at 100 tracks, for a few per cent of accuracy on synthetic
             data and about 5 cm of median centre error on real cars (docs/model.md, "Fewer
             points per frame").
-        smoothing: ``"none"`` (the default) or ``"causal"``: each track's estimate is then
-            replaced by a robust fit over its past estimates
+        smoothing: ``"none"`` (the default) or ``"causal"``: each track's pose is then
+            replaced by a robust fit over its past estimates and its shape by the average of
+            its past shapes in their canonical frames
             (:class:`~seqshape.model.smooth.CausalSmoother`, after the heading step; frames
             ``<= t`` only, so still online). It lowers the online errors (docs/model.md,
             "Causal pose smoothing (online)") and costs about 1 ms per track and step. An

@@ -13,7 +13,9 @@ pieces (docs/model.md, section "Offline mode", has their measured figures):
   state, so every frame's estimate has seen all frames (frames from the last detection on
   keep the first pass: it had seen everything there). ``"bidirectional"``: the network is
   also run over the reversed track; each frame takes the direction that has seen more
-  detections.
+  detections. ``"average"``: the online shapes averaged slot by slot in their canonical
+  frames over the whole track, past and future, weighted by each frame's points and
+  ``shape_decay ** |t - j|`` (:func:`seqshape.model.smooth.average_shapes`).
 * ``pose``: ``"online"``, ``"two-pass"`` (as above) or ``"bidirectional"`` (the two
   directions' centres, and their yaws when they agree within 90 degrees, averaged with
   weights the detections each has seen).
@@ -31,8 +33,8 @@ pieces (docs/model.md, section "Offline mode", has their measured figures):
 A shape moved to a pose other than the one it was estimated with is taken into its canonical
 frame with its own pose (turned by pi when that is nearer the new yaw, so that it stays where
 it was estimated) and placed with the new pose; a heading flip turns the yaw only (as the
-online heading step does). The default, the measured best, is the online shape and pose,
-smoothed, with the whole-track heading.
+online heading step does). The default, the measured best, is the track's average shape
+with the online pose, smoothed, with the whole-track heading.
 
 ``mode="online"`` reproduces :meth:`Estimator.step` called frame by frame (same resampling of
 large frames, same input scale, same heading step). On a track of one frame every offline
@@ -71,7 +73,10 @@ from seqshape.model.heading import (
     wrap_angle,
 )
 from seqshape.model.smooth import (
+    SHAPE_DECAY,
     CausalSmoother,
+    average_shapes,
+    check_decay,
     check_weighting,
     frame_weights,
     place_shapes,
@@ -79,17 +84,20 @@ from seqshape.model.smooth import (
 )
 
 MODES = ("online", "offline")
-SHAPE_SOURCES = ("online", "final", "two-pass", "bidirectional")
+SHAPE_SOURCES = ("online", "final", "two-pass", "bidirectional", "average")
 POSE_SOURCES = ("online", "two-pass", "bidirectional")
 
 
 @dataclass(frozen=True)
 class OfflineConfig:
     """What offline estimation uses (module doc). The defaults are the measured best on the
-    paper-preset val split (docs/model.md, "Offline mode")."""
+    paper-preset val split and the traffic set (docs/model.md, "Offline mode")."""
 
-    shape: str = "online"
-    """Source of each frame's complete shape: ``"online"``, ``"final"`` or ``"two-pass"``."""
+    shape: str = "average"
+    """Source of each frame's complete shape: ``"online"``, ``"final"``, ``"two-pass"``,
+    ``"bidirectional"`` or ``"average"`` (the online shapes averaged slot by slot in their
+    canonical frames over the whole track, :func:`seqshape.model.smooth.average_shapes`
+    with ``shape_decay`` and the frames' :func:`~seqshape.model.smooth.frame_weights`)."""
     pose: str = "online"
     """Source of each frame's pose: ``"online"`` or ``"two-pass"``."""
     smooth: bool = True
@@ -110,6 +118,8 @@ class OfflineConfig:
     ramp: float | None = None
     """The smoothing's frame weights: detections over which a track's first online estimates
     weigh less (None: no ramp; off by default, as ``full_points``)."""
+    shape_decay: float = SHAPE_DECAY
+    """``shape="average"``: frame j's shape weighs ``shape_decay ** |t - j|`` at frame t."""
 
     def __post_init__(self):
         if self.shape not in SHAPE_SOURCES:
@@ -122,6 +132,7 @@ class OfflineConfig:
             raise ConfigError(f"OfflineConfig.vote_decay must be in (0, 1], got "
                               f"{self.vote_decay}")
         check_weighting("OfflineConfig", self.full_points, self.ramp)
+        check_decay("OfflineConfig", self.shape_decay)
 
     @property
     def two_pass(self) -> bool:
@@ -314,6 +325,10 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
     if cfg.shape == "final":
         complete = np.broadcast_to(first["complete"][last], first["complete"].shape)
         own = np.broadcast_to(first["pose"][last], poses.shape)
+    elif cfg.shape == "average":  # the first pass's poses are the decoder's (no flip yet)
+        complete = average_shapes(first["complete"], first["pose"], frame_weights(p.counts),
+                                  cfg.shape_decay, causal=False)
+        own = first["pose"]
     else:
         complete, own = passes[cfg.shape]["complete"], passes[cfg.shape]["pose"]
     complete = place_shapes(complete, own, poses)
