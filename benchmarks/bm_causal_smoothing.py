@@ -41,6 +41,7 @@ from seqshape.model.smooth import (
     CAUSAL_WINDOW,
     FULL_POINTS,
     RAMP,
+    SHAPE_DECAY,
     CausalSmoother,
 )
 
@@ -77,18 +78,20 @@ def methods(seq, base, windows: list[int], offline: bool = False) -> dict:
     rows = {"sequential": seq,
             f"sequential + smoother (shipped: window {CAUSAL_WINDOW}, from detection "
             f"{CAUSAL_MIN_FRAMES}, estimate's front, weights: {FULL_POINTS} points, ramp "
-            f"{RAMP})": Smoothed(seq)}
+            f"{RAMP}, shape decay {SHAPE_DECAY})": Smoothed(seq)}
     for w in windows:
         if w != CAUSAL_WINDOW:
             rows[f"sequential + smoother, window {w}"] = Smoothed(seq, window=w)
     rows["sequential + smoother, weights by points only"] = Smoothed(seq, ramp=None)
     rows["sequential + smoother, detection ramp only"] = Smoothed(seq, full_points=None)
-    rows["sequential + smoother, equal weights (before session 30)"] = Smoothed(
+    rows["sequential + smoother, equal weights (session 28's pose fit)"] = Smoothed(
         seq, full_points=None, ramp=None)
     rows["sequential + smoother, no shape average (poses only)"] = Smoothed(seq,
                                                                           shape_decay=None)
-    for decay in (0.8, 0.95, 1.0):
-        rows[f"sequential + smoother, shape decay {decay}"] = Smoothed(seq, shape_decay=decay)
+    for decay in (0.8, 0.9, 0.95, 1.0):
+        if decay != SHAPE_DECAY:
+            rows[f"sequential + smoother, shape decay {decay}"] = Smoothed(seq,
+                                                                       shape_decay=decay)
     rows["sequential + smoother, from the first detection"] = Smoothed(seq, min_frames=1)
     rows["sequential + smoother, the smoother's own front"] = Smoothed(seq, keep_front=False)
     rows["sequential + smoother, from the first detection, its own front"] = Smoothed(
@@ -96,12 +99,12 @@ def methods(seq, base, windows: list[int], offline: bool = False) -> dict:
     rows["baseline"] = base
     rows["baseline + smoother (reference only)"] = Smoothed(base)
     if offline:
-        rows["sequential, offline (shipped OfflineConfig: equal weights)"] = OfflineEstimator(
-            seq)
+        rows["sequential, offline (shipped OfflineConfig: shape average, equal weights)"] = \
+            OfflineEstimator(seq)
+        rows["sequential, offline, each frame's own shape (before session 30)"] = \
+            OfflineEstimator(seq, OfflineConfig(shape="online"))
         rows["sequential, offline, the causal smoother's frame weights"] = OfflineEstimator(
             seq, OfflineConfig(full_points=FULL_POINTS, ramp=RAMP))
-        rows["sequential, offline, shape average over the track"] = OfflineEstimator(
-            seq, OfflineConfig(shape="average"))
     return rows
 
 
