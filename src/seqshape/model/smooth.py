@@ -482,10 +482,16 @@ def _decayed_sums(canonical: np.ndarray, w: np.ndarray, decay: float
     total, mass = np.zeros_like(canonical), np.zeros(len(w))
     run, run_mass = np.zeros(canonical.shape[1:]), 0.0
     for t in range(len(w)):
-        run = decay * run + w[t] * canonical[t]
-        run_mass = decay * run_mass + w[t]
+        run, run_mass = _decay_step(run, run_mass, canonical[t], w[t], decay)
         total[t], mass[t] = run, run_mass
     return total, mass
+
+
+def _decay_step(total: np.ndarray, mass: float, canonical: np.ndarray, w: float,
+                decay: float) -> tuple[np.ndarray, float]:
+    """One frame of the shape average's decayed sums (:func:`average_shapes` over a track,
+    :class:`CausalSmoother` frame by frame)."""
+    return decay * total + w * canonical, decay * mass + w
 
 
 #: Frames of a track's past that :class:`CausalSmoother` fits (the oldest are dropped).
@@ -642,26 +648,19 @@ class CausalSmoother:
         ``shape_decay``, the shape replaced first by the track's shape average so far
         (:func:`average_shapes`, causal, with the frames' weights)."""
         new = self.update(est.pose, est.num_points > 0, ego, time, rate_hz, est.num_points)
-        if self.shape_decay is None:
-            if not np.array_equal(new, est.pose):
-                est.complete = place_shapes(est.complete[None], est.pose[None], new[None])[0]
-                est.pose = new
-            return
-        # the decoder's frame: a heading flip turned the yaw by pi and kept the placed shape
-        turn = math.pi if getattr(est, "flipped", False) else 0.0
-        own = np.array(est.pose, dtype=np.float64)
-        own[3] = wrap_angle(own[3] + turn)
-        canonical = sensor_to_canonical(np.asarray(est.complete, dtype=np.float64), own)
-        if self._shape_sum is None or self._shape_sum.shape != canonical.shape:
-            self._shape_sum, self._shape_mass = np.zeros_like(canonical), 0.0
-        w = self._weights[-1]
-        self._shape_sum = self.shape_decay * self._shape_sum + w * canonical
-        self._shape_mass = self.shape_decay * self._shape_mass + w
-        if self._shape_mass > 0:
-            canonical = self._shape_sum / self._shape_mass
-        target = np.array(new, dtype=np.float64)
-        target[3] = wrap_angle(target[3] + turn)
-        if abs(wrap_angle(target[3] - own[3])) > math.pi / 2:  # the smoother's own front:
-            target[3] = wrap_angle(target[3] + math.pi)  # the shape stays where it was
-        est.complete = canonical_to_sensor(canonical, target).astype(np.float32)
-        est.pose = new
+        if self.shape_decay is not None:
+            # the decoder's frame: a heading flip turned the yaw by pi and kept the shape
+            own = np.array(est.pose, dtype=np.float64)
+            own[3] = wrap_angle(own[3] + (math.pi if getattr(est, "flipped", False) else 0.0))
+            canonical = sensor_to_canonical(np.asarray(est.complete, dtype=np.float64), own)
+            if self._shape_sum is None or self._shape_sum.shape != canonical.shape:
+                self._shape_sum, self._shape_mass = np.zeros_like(canonical), 0.0
+            self._shape_sum, self._shape_mass = _decay_step(
+                self._shape_sum, self._shape_mass, canonical, self._weights[-1],
+                self.shape_decay)
+            if self._shape_mass > 0:  # the average, where the decoder would have placed it
+                est.complete = canonical_to_sensor(self._shape_sum / self._shape_mass,
+                                                   own).astype(np.float32)
+        if not np.array_equal(new, est.pose):  # moved rigidly with the smoothed pose
+            est.complete = place_shapes(est.complete[None], est.pose[None], new[None])[0]
+            est.pose = new
