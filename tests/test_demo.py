@@ -20,6 +20,7 @@ from seqshape.demo import (
     amodal_demo_step,
     fusion,
     pipeline,
+    report_html,
     run_demo,
 )
 from seqshape.demo.amodal_step import masks_note
@@ -137,6 +138,7 @@ def test_small_demo_matches_the_recorded_release(tmp_path):
     assert (tmp_path / "eval" / pipeline.FUSION_PLOT).read_bytes()[:4] == b"\x89PNG"
     page = (tmp_path / "index.html").read_text()
     assert "**" not in page and "<strong>On this demo set, fusion over time buys" in page
+    assert "###" not in page and "<h3>Errors by detections so far" in page
 
 
 def _summary(seq: dict, base: dict, late: tuple = ((0.8, 0.7), (1.0, 1.0)),
@@ -238,6 +240,20 @@ def test_markdown_bold_renders_as_html():
     assert md_to_html("**Amodal masks** vs `a**b`") == (
         "<p><strong>Amodal masks</strong> vs <code>a**b</code></p>")
     assert md_to_html("a ** b") == "<p>a ** b</p>"
+
+
+def test_report_headings_render_as_html():
+    """The evaluation section's ``###`` headings are HTML headings on the demo's page, never a
+    literal ``###`` (issue 46)."""
+    assert md_to_html("## Two\n### Three (cm) ##\n#not a heading") == (
+        "<h2>Two</h2>\n<h3>Three (cm)</h3>\n<p>#not a heading</p>")
+    s = _summary({"cd_cm": 20.0, "emd_m": 0.3, "trans_cm": 8.0, "rot_deg": 4.0},
+                 {"cd_cm": 21.5, "emd_m": 0.4, "trans_cm": 9.0, "rot_deg": 30.0})
+    text = pipeline.evaluation_markdown(s)
+    assert "### Errors by detections so far" in text
+    page = report_html([Section("Shape and pose estimation", text)], [("total", 1.0)])
+    assert "###" not in page
+    assert "<h3>Errors by detections so far (frame-pooled means, cm)</h3>" in page
 
 
 def test_demo_config_sizes_and_seed():

@@ -1,17 +1,20 @@
 """The demo report: sections of markdown, images and links, written as markdown and as HTML.
 
-:func:`md_to_html` converts the small markdown subset the sections use (tables, bullet lists,
-paragraphs, ``code``, ``**bold**``); there is no markdown dependency.
+:func:`md_to_html` converts the small markdown subset the sections use (``###`` headings,
+tables, bullet lists, paragraphs, ``code``, ``**bold**``); there is no markdown dependency.
 
 >>> md_to_html("| a | b |\\n|---|---|\\n| 1 | `x` |")
 '<table><tr><th>a</th><th>b</th></tr><tr><td>1</td><td><code>x</code></td></tr></table>'
 >>> md_to_html("**Title** and `a**b`")
 '<p><strong>Title</strong> and <code>a**b</code></p>'
+>>> md_to_html("### Errors by `k`\ntext")
+'<h3>Errors by <code>k</code></h3>\n<p>text</p>'
 """
 
 from __future__ import annotations
 
 import html
+import re
 from dataclasses import dataclass, field
 
 
@@ -62,9 +65,13 @@ def _table_html(lines: list[str]) -> str:
             + "</table>")
 
 
+#: an ATX heading line: 1-6 ``#``, a space, the title (closing ``#`` dropped)
+_HEADING = re.compile(r"^(#{1,6})\s+(.*?)(?:\s+#+)?\s*$")
+
+
 def md_to_html(text: str) -> str:
-    """HTML of the markdown subset the sections use: tables, bullet lists, paragraphs, `code`,
-    **bold**."""
+    """HTML of the markdown subset the sections use: ``#``-``######`` headings, tables, bullet
+    lists, paragraphs, `code`, **bold**."""
     out: list[str] = []
     table: list[str] = []
     items: list[str] = []
@@ -82,6 +89,10 @@ def md_to_html(text: str) -> str:
             table.append(line)
         elif line.startswith("- "):
             items.append(line[2:])
+        elif heading := _HEADING.match(line):
+            flush()
+            level = len(heading.group(1))
+            out.append(f"<h{level}>{_inline(heading.group(2))}</h{level}>")
         else:
             flush()
             if line.strip():
