@@ -7,8 +7,8 @@ tables, bullet lists, paragraphs, ``code``, ``**bold**``); there is no markdown 
 '<table><tr><th>a</th><th>b</th></tr><tr><td>1</td><td><code>x</code></td></tr></table>'
 >>> md_to_html("**Title** and `a**b`")
 '<p><strong>Title</strong> and <code>a**b</code></p>'
->>> md_to_html("### Errors by `k`\ntext")
-'<h3>Errors by <code>k</code></h3>\n<p>text</p>'
+>>> md_to_html("### Errors by `k`\\ntext")
+'<h3>Errors by <code>k</code></h3>\\n<p>text</p>'
 """
 
 from __future__ import annotations
