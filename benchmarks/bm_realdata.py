@@ -1,48 +1,60 @@
-"""The shipped models on real annotated LiDAR: ``seqshape tracks`` then ``seqshape evaluate``.
+"""The real-data benchmark: every real log given, every inference mode, by detections so far.
 
-Extracts the vehicle tracks of one or more real logs (any reader of ``seqshape.data``), runs the
-sequential model, the per-frame baseline and the classical box fit over them, and prints the
-tables the real-data issues are judged by: centre error (median and mean, and its signed radial
-part: positive = too far from the sensor), yaw error with and without 180-degree flips, the
-flip rate, length and width errors of the estimated extents, the CD against the accumulated
-reference and its one-way reference->estimate half, and the share of each frame's points left
-outside the box on the sensor's side and beyond it, for the estimate and for the annotation
-(the annotation's share behind its box tells whether it encloses the cars' own points; the
-estimates' shares compare the methods, docs/evaluation.md); cars and larger vehicles separately, and
-the centre error by points per frame. The rows "box fits its points" and "box off its points"
-split the frames by whether the annotated box's faces seen head-on lie within 0.15 m of the
-frame's points (``ref_face_gap_m``, docs/evaluation.md): on the second kind every method is
-scored against a box that does not hold its own vehicle. With ``--finetune-steps N`` it also fine-tunes the
-sequential model on the logs' own references (``seqshape train --init pretrained``, stage 3
-only) and prints the same tables after, on held-out vehicles (``--split-by track``) and on all.
+Extracts the vehicle tracks of each real source (``seqshape tracks``; any reader of
+``seqshape.data``), evaluates them with ``seqshape evaluate`` in each mode of the sequential
+model (online, ``--smoothing causal``, ``--offline``) beside the per-frame baseline and the
+classical box fit, and prints the table real-data changes are judged by (docs/results.md,
+"Real sequences"): per source and method, the planar centre error (median, mean and largest),
+its signed radial part (positive: too far from the sensor), the yaw error, the share of
+180-degree flips (moving and parked vehicles apart: parked = the annotated centre moves less
+than ``PARKED_M`` in the fixed frame of the ego poses over the track), the absolute length and
+width errors of the estimated extents and the Chamfer distance to each track's accumulated
+reference; then the median centre error by detections so far (1, 2-3, 4-8, 9-16, 17+) and the
+fusion ratios (the sequential model's median centre error over the baseline's, from the 9th
+detection on).
 
-    python benchmarks/bm_realdata.py --dataset av2 --root ../shared/realdata/av2/sensor/val
+    python benchmarks/bm_realdata.py \\
+        --source kitti0000=kitti:../shared/realdata/kitti-tracking/training \\
+        --source av2=av2:../shared/realdata/av2/sensor/val
+    python benchmarks/bm_realdata.py --dataset av2 --root ROOT     # one source
     python benchmarks/bm_realdata.py --dataset av2 --root ROOT --finetune-steps 300
-    python benchmarks/bm_realdata.py --dataset av2 --root ROOT --refiner none  # the networks alone
+    python benchmarks/bm_realdata.py --dataset av2 --root ROOT --refiner none --modes online
 
-Without ``--root`` there is nothing to measure: the script says so and exits 0 (real data is
-never part of the repository). Timing is not the point here; ``bm_tracks.py`` times extraction.
+A log a reader cannot open (e.g. a sequence without sweeps) is reported and skipped. Without
+``--source`` or ``--root`` there is nothing to measure: the script says so and exits 0 (real
+data is never part of the repository). Timing is not the point here; ``bm_tracks.py`` times
+extraction. ``--out`` keeps the work folder: ``--reuse`` then skips what is already there.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import io
 import json
 import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
 from _bench import print_table
 
 from seqshape.cli import main as seqshape_main
 
 METHODS = ("sequential", "baseline", "boxfit")
+MODES = ("online", "causal", "offline")
+#: Detections-so-far bins of the table (inclusive ranges; None: no upper end).
+BINS = ((1, 1), (2, 3), (4, 8), (9, 16), (17, None))
+#: Annotated centre travel (m, fixed frame) under which a track counts as parked.
+PARKED_M = 1.0
+#: Rotation error (deg) above which a frame counts as a 180-degree flip (as ``evaluate``).
+FLIP_DEG = 150.0
 
 
 def _f(v, digits: int = 1) -> str:
-    return "n/a" if v is None else f"{v:.{digits}f}"
+    return "n/a" if v is None or (isinstance(v, float) and not np.isfinite(v)) else \
+        f"{v:.{digits}f}"
 
 
 def _quiet(argv: list[str]) -> int:
@@ -58,61 +70,196 @@ def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> No
         argv += ["--sequence", s]
     if split_by == "log":
         argv += ["--split", "val"]
-    if _quiet(argv) != 0:
-        sys.exit(f"seqshape tracks failed on {root}")
+    code = _quiet(argv)
+    if not (out / "manifest.json").exists():
+        sys.exit(f"seqshape tracks wrote no tracks from {root} (exit {code})")
 
 
 def evaluate(data: Path, out: Path, checkpoint: str, split: str,
-             baseline: str = "pretrained", refiner: str = "pretrained") -> dict:
-    if _quiet(["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
-               "--baseline", baseline, "--refiner", refiner,
-               "--split", split, "--workers", "1", "--emd-every", "0", "--view", "none"]) != 0:
-        sys.exit(f"seqshape evaluate failed on {data}")
-    return json.loads((out / "metrics.json").read_text())
+             baseline: str = "pretrained", refiner: str = "pretrained",
+             mode: str = "online", reuse: bool = False) -> Path:
+    """``seqshape evaluate`` of one mode into ``out``; returns its ``per_frame.csv``."""
+    if reuse and (out / "per_frame.csv").exists():
+        return out / "per_frame.csv"
+    argv = ["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
+            "--baseline", baseline, "--refiner", refiner, "--split", split, "--workers", "1",
+            "--emd-every", "0", "--view", "none"]
+    argv += {"online": [], "causal": ["--smoothing", "causal"], "offline": ["--offline"]}[mode]
+    if _quiet(argv) != 0:
+        sys.exit(f"seqshape evaluate ({mode}) failed on {data}")
+    return out / "per_frame.csv"
 
 
-def tables(metrics: dict, title: str) -> None:
-    print(f"\n### {title}\n")
-    b = metrics["breakdown"]
-    groups = ([("all", b["all"]["all"])] + sorted(b["class_group"].items())
-              + list(b.get("annotation", {}).items()) + list(b.get("face_gap", {}).items()))
-    rows = []
-    for name, g in groups:
-        for m in METHODS:
-            s = g.get(m)
-            if not s:
-                continue
-            rows.append([name, m, s["n_frames"], _f(s["centre_cm_median"]),
-                         _f(s["centre_cm_mean"]), _f(s["radial_cm_median"]),
-                         _f(s["rot_deg_median"]), _f(s["rot_deg_without_flips_median"]),
-                         _f(s["flip_pct"]), _f(s["length_abs_cm_median"]),
-                         _f(s.get("length_rel_abs_pct_median")),
-                         _f(s["width_abs_cm_median"]), _f(s.get("cd_cm_mean")),
-                         _f(s.get("ref_to_est_cm_mean")),
-                         f'{_f(s.get("est_near_out_pct_mean"))} / {_f(s.get("est_far_out_pct_mean"))}',
-                         f'{_f(s.get("ref_near_out_pct_mean"))} / {_f(s.get("ref_far_out_pct_mean"))}'])
-    print_table(["group", "method", "frames", "centre med", "centre mean", "radial med",
-                 "yaw med", "yaw w/o flips med", "flips %", "|length| med", "|length| % med",
-                 "|width| med",
-                 "CD vs ref mean", "ref->est mean", "points out near / far % (estimate)",
-                 "(annotation)"], rows)
-    print("\ncentre error (cm, median) by points per frame\n")
-    pts = b["points"]
-    keys = [k for k in pts if any(pts[k].get(m) for m in METHODS)]
-    rows = [[m] + [f"{_f(pts[k][m]['centre_cm_median'])} ({pts[k][m]['n_frames']})"
-                   if pts[k].get(m) else "-" for k in keys] for m in METHODS]
-    print_table(["method"] + keys, rows)
-    for m in METHODS:  # the share of the classical fit's flips is part of the picture
-        d = metrics["details"][m]
-        print(f"- {m}: {d['rot_flip_frames']} flipped frames of {d['n_frames']}")
+def parked_tracks(data: Path) -> dict[str, bool]:
+    """Track id -> parked (annotated centre travel < PARKED_M in the ego poses' fixed frame);
+    tracks without ego poses are left out (unknown)."""
+    from seqshape.data.dataset import read_manifest
+    from seqshape.data.track import load_track
+
+    out = {}
+    for entry in read_manifest(data)["tracks"]:
+        tr = load_track(data / entry["file"])
+        egos = [tr.ego_pose(t) for t in range(len(tr))]
+        if any(e is None for e in egos):
+            continue
+        world = np.array([(e[:3, :3] @ p[:3] + e[:3, 3])[:2]
+                          for e, p in zip(egos, tr.poses, strict=True)])
+        has = tr.num_points > 0
+        if has.any():
+            w = world[has]
+            out[tr.track_id] = float(np.linalg.norm(w.max(0) - w.min(0))) < PARKED_M
+    return out
+
+
+def read_frames(path: Path) -> dict[str, dict[str, np.ndarray]]:
+    """``per_frame.csv`` as per-method columns (centre cm, radial cm, yaw deg, |length| cm,
+    |width| cm, CD cm, detections so far, track id)."""
+    cols: dict[str, dict[str, list]] = {}
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            c = cols.setdefault(r["method"], {k: [] for k in (
+                "centre", "radial", "yaw", "length", "width", "cd", "n_det", "track")})
+
+            def num(key, scale=1.0, r=r):
+                v = r.get(key, "")
+                return float(v) * scale if v not in ("", None) else np.nan
+            c["centre"].append(num("trans_m", 100))
+            c["radial"].append(num("radial_m", 100))
+            c["yaw"].append(np.degrees(abs(num("rot_rad"))))
+            c["length"].append(abs(num("length_err_m", 100)))
+            c["width"].append(abs(num("width_err_m", 100)))
+            c["cd"].append(num("cd_m", 100))
+            c["n_det"].append(int(r["n_det"]))
+            c["track"].append(r["track_id"])
+    return {m: {k: np.asarray(v) for k, v in c.items()} for m, c in cols.items()}
+
+
+def _med(x):
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if len(x) else None
+
+
+def _mean(x):
+    x = x[np.isfinite(x)]
+    return float(np.mean(x)) if len(x) else None
+
+
+def _in_bin(n_det: np.ndarray, lo: int, hi: int | None) -> np.ndarray:
+    return (n_det >= lo) & (n_det <= (hi if hi is not None else np.iinfo(np.int64).max))
+
+
+def summarise(rows: dict[str, dict[str, np.ndarray]], parked: dict[str, bool]) -> dict:
+    """Per method row of the headline table (numbers, None where there are none)."""
+    out = {}
+    for name, c in rows.items():
+        flips = c["yaw"] > FLIP_DEG
+        state = np.array([parked.get(t) for t in c["track"]], dtype=object)
+        mov, par = state == False, state == True  # noqa: E712 (None: unknown)
+        out[name] = {
+            "frames": len(c["centre"]), "centre_med": _med(c["centre"]),
+            "centre_mean": _mean(c["centre"]), "centre_max": float(np.nanmax(c["centre"])),
+            "radial_med": _med(c["radial"]), "yaw_med": _med(c["yaw"]),
+            "flip_pct": 100.0 * float(flips.mean()),
+            "flip_moving_pct": 100.0 * float(flips[mov].mean()) if mov.any() else None,
+            "flip_parked_pct": 100.0 * float(flips[par].mean()) if par.any() else None,
+            "length_med": _med(c["length"]), "width_med": _med(c["width"]),
+            "cd_mean": _mean(c["cd"]),
+            "bins": [_med(c["centre"][_in_bin(c["n_det"], lo, hi)]) for lo, hi in BINS],
+            "bin_frames": [int(_in_bin(c["n_det"], lo, hi).sum()) for lo, hi in BINS],
+            "from9_med": _med(c["centre"][c["n_det"] >= 9]),
+        }
+    return out
+
+
+def run_source(name: str, dataset: str, root: Path, work: Path, args) -> dict | None:
+    data = work / "tracks"
+    if not (args.reuse and (data / "manifest.json").exists()):
+        extract(dataset, root, data, args.sequence, "log")
+    rows: dict[str, dict[str, np.ndarray]] = {}
+    for mode in args.modes:
+        per_frame = evaluate(data, work / f"eval_{mode}", args.checkpoint, "all",
+                             args.baseline, args.refiner, mode, args.reuse)
+        frames = read_frames(per_frame)
+        rows[f"sequential {mode}"] = frames["sequential"]
+        if mode == args.modes[0]:  # the baseline and the box fit do not change with the mode
+            for m in ("baseline", "boxfit"):
+                if m in frames:
+                    rows[m] = frames[m]
+    return summarise(rows, parked_tracks(data))
+
+
+def print_source(name: str, s: dict) -> None:
+    print(f"\n### {name}\n")
+    print_table(["method", "frames", "centre med", "centre mean", "centre max", "radial med",
+                 "yaw med", "flips % (moving / parked)", "|length| med", "|width| med",
+                 "CD vs ref mean"],
+                [[m, v["frames"], _f(v["centre_med"]), _f(v["centre_mean"]),
+                  _f(v["centre_max"]), _f(v["radial_med"]), _f(v["yaw_med"]),
+                  f'{_f(v["flip_pct"])} ({_f(v["flip_moving_pct"])} / '
+                  f'{_f(v["flip_parked_pct"])})', _f(v["length_med"]), _f(v["width_med"]),
+                  _f(v["cd_mean"])] for m, v in s.items()])
+    labels = [f"{lo}" if lo == hi else (f"{lo}+" if hi is None else f"{lo}-{hi}")
+              for lo, hi in BINS]
+    print(f"\nmedian centre error (cm) by detections so far ({name}; frames in brackets)\n")
+    print_table(["method"] + labels,
+                [[m] + [f"{_f(b)} ({n})" for b, n in zip(v["bins"], v["bin_frames"],
+                                                        strict=True)]
+                 for m, v in s.items()])
+    base = s.get("baseline", {}).get("from9_med")
+    ratios = [f"{m.split()[1]} {v['from9_med'] / base:.2f}x" for m, v in s.items()
+              if m.startswith("sequential") and base and v["from9_med"] is not None]
+    if ratios:
+        print(f"\nfusion (median centre error from the 9th detection, sequential / baseline): "
+              f"{', '.join(ratios)}")
+
+
+def parse_sources(args) -> list[tuple[str, str, Path]]:
+    out = []
+    for spec in args.source or ():
+        name, sep, rest = spec.partition("=")
+        dataset, sep2, root = rest.partition(":")
+        if not (sep and sep2 and name and dataset and root):
+            sys.exit(f"--source {spec!r}: expected NAME=DATASET:ROOT")
+        out.append((name, dataset, Path(root)))
+    if args.root is not None:
+        out.append((args.dataset, args.dataset, args.root))
+    return out
+
+
+def finetune(dataset: str, root: Path, work: Path, args) -> None:
+    """Fine-tune the sequential model on the logs' own references (stage 3), split by track,
+    and print the tables before and after, on held-out vehicles and on all."""
+    extract(dataset, root, work / "ft_tracks", args.sequence, "track")
+    run = work / "ft_run"
+    if _quiet(["train", "--data", str(work / "ft_tracks"), "--model", "sequential", "--init",
+               args.checkpoint, "--stage-steps", f"0,0,{args.finetune_steps}", "--lr", "2e-4",
+               "--no-tensorboard", "--threads", "1", "--out", str(run)]) != 0:
+        sys.exit("fine-tuning failed")
+    parked = parked_tracks(work / "ft_tracks")
+    for split in ("val", "all"):
+        rows = {}
+        for label, ckpt in (("before", args.checkpoint), ("after", str(run / "model.pt"))):
+            frames = read_frames(evaluate(work / "ft_tracks", work / f"ft_eval_{split}_{label}",
+                                          ckpt, split, args.baseline, args.refiner))
+            rows[f"sequential {label}"] = frames["sequential"]
+            rows.setdefault("baseline", frames["baseline"])
+        print_source(f"fine-tuning, {'held-out vehicles' if split == 'val' else 'all vehicles'}",
+                     summarise(rows, parked))
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--dataset", default="av2", help="reader: kitti, av2, nuscenes")
-    ap.add_argument("--root", type=Path, default=None, help="dataset folder (real data)")
+    ap.add_argument("--source", action="append", default=None, metavar="NAME=DATASET:ROOT",
+                    help="a real source (repeatable): a name, a reader (kitti, av2, nuscenes) "
+                         "and its dataset folder")
+    ap.add_argument("--dataset", default="av2", help="reader of --root: kitti, av2, nuscenes")
+    ap.add_argument("--root", type=Path, default=None, help="one dataset folder (real data)")
     ap.add_argument("--sequence", action="append", default=None, help="log(s); default all")
     ap.add_argument("--out", type=Path, default=None, help="work folder (default: temporary)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep what --out already holds (tracks, evaluations)")
+    ap.add_argument("--modes", default=",".join(MODES),
+                    help=f"sequential modes to evaluate, comma-separated from {MODES}")
     ap.add_argument("--checkpoint", default="pretrained", help="sequential model to evaluate")
     ap.add_argument("--baseline", default="pretrained", help="baseline model to evaluate")
     ap.add_argument("--refiner", default="pretrained",
@@ -121,29 +268,24 @@ def main() -> int:
                     help="also fine-tune the sequential model this many stage-3 steps on the "
                          "logs' own references and evaluate again (0: no)")
     args = ap.parse_args()
-    if args.root is None:
-        print("bm_realdata: no --root given; real data is not part of the repository, so there "
-              "is nothing to measure (see the docstring for the command)")
+    args.modes = [m for m in args.modes.split(",") if m]
+    if not args.modes or set(args.modes) - set(MODES):
+        sys.exit(f"--modes must be a comma-separated list of {MODES}")
+    sources = parse_sources(args)
+    if not sources:
+        print("bm_realdata: no --source or --root given; real data is not part of the "
+              "repository, so there is nothing to measure (see the docstring for the command)")
         return 0
     work = args.out or Path(tempfile.mkdtemp(prefix="bm_realdata_"))
-    extract(args.dataset, args.root, work / "tracks", args.sequence, "log")
-    tables(evaluate(work / "tracks", work / "eval", args.checkpoint, "all", args.baseline,
-                    args.refiner),
-           f"{args.dataset}: {args.checkpoint} / {args.baseline} weights, refiner "
-           f"{args.refiner}, all frames")
-    if args.finetune_steps > 0:
-        extract(args.dataset, args.root, work / "ft_tracks", args.sequence, "track")
-        run = work / "ft_run"
-        if _quiet(["train", "--data", str(work / "ft_tracks"), "--model", "sequential", "--init",
-                args.checkpoint, "--stage-steps", f"0,0,{args.finetune_steps}", "--lr", "2e-4",
-                "--no-tensorboard", "--threads", "1", "--out", str(run)]) != 0:
-            sys.exit("fine-tuning failed")
-        for split in ("val", "all"):
-            for name, ckpt in (("before", args.checkpoint), ("after", str(run / "model.pt"))):
-                m = evaluate(work / "ft_tracks", work / f"ft_eval_{split}_{name}", ckpt, split,
-                             refiner=args.refiner)
-                tables(m, f"fine-tuning {name}, {'held-out vehicles' if split == 'val' else 'all vehicles (as the paper: the data to label)'}")
-    print(f"\nwork folder: {work}")
+    summary = {}
+    for name, dataset, root in sources:
+        summary[name] = run_source(name, dataset, root, work / name, args)
+        print_source(f"{name} ({dataset}: {args.checkpoint} / {args.baseline} weights, "
+                     f"refiner {args.refiner})", summary[name])
+        if args.finetune_steps > 0:
+            finetune(dataset, root, work / name, args)
+    (work / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(f"\nwork folder: {work} (summary.json holds the numbers)")
     return 0
 
 
