@@ -22,7 +22,7 @@ from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 # options added since that release (issue 17: inference backends, labelling workers;
 # label --resume; evaluate and label --max-points; evaluate --smoothing)
 ADDED = {"label": {"backend": "auto-float", "workers": 1, "resume": False,
-                   "placement": "pretrained", "max_points": None},
+                   "placement": "pretrained", "max_points": None, "image_size": None},
          "evaluate": {"backend": "auto-float", "refiner": "pretrained", "max_points": None,
                       "smoothing": "none"}}
 

@@ -230,8 +230,10 @@ def instance_masks_by_frame(log, camera: str, instances_path, categories=None
     """
     instances_path = Path(instances_path)
     if not instances_path.is_file():
-        raise DataError(instances_path, "2D instance masks not found (sc-seg needs COCO "
-                                        "instance JSON; pass --instances)")
+        raise DataError(instances_path, "2D instance masks not found: sc-seg needs the "
+                                        "camera images' instance masks (COCO instance JSON; "
+                                        "pass --instances FILE); the modes gt-accumulation "
+                                        "and sc-gt need no images")
     doc = read_coco_instances(instances_path)
     by_name = {img["file_name"]: img["id"] for img in doc["images"]}
     anns: dict = {}

@@ -61,6 +61,7 @@ from seqshape.amodal.fallback import mask_instance
 from seqshape.amodal.masks import ORDERS, InstanceMask, frame_masks
 from seqshape.amodal.overlay import draw_overlay, write_overlays  # noqa: F401 (re-exported)
 from seqshape.amodal.refine import REFINE_MODES, TrackInput, complete_tracks
+from seqshape.camera import KITTI_IMAGE_SIZE
 from seqshape.data.categories import CLASS_TO_KINS
 from seqshape.data.crop import CropConfig
 from seqshape.data.extract import crop_frames, extract_tracks, tracks_from_crops
@@ -71,7 +72,7 @@ from seqshape.data.kins import (
     rle_to_mask,
     write_kins,
 )
-from seqshape.data.kitti import KittiTrackingSequence
+from seqshape.data.kitti import KittiTrackingSequence, calib_path
 from seqshape.data.sequence import parse_classes
 from seqshape.errors import ConfigError, DataError, SeqshapeError
 
@@ -425,16 +426,57 @@ def open_sequence(root, sequence, max_frames: int | None = None):
     return KittiTrackingSequence(root, sequence).restrict(max_frames)
 
 
+#: Where each dataset's camera model comes from (:func:`check_camera` names it when missing).
+CAMERA_SOURCES = {
+    "kitti": "the calibration file {calib}",
+    "av2": "the cameras' intrinsics (calibration/intrinsics.feather in the log folder)",
+    "nuscenes": "camera sample_data (CAM_FRONT, ...) in the scene's keyframes",
+}
+
+#: The image size (width, height) of a camera whose log has no image to read it from, per
+#: dataset (``seqshape label --image-size W H`` gives another). Argoverse 2 and nuScenes
+#: record each camera's size in their tables (intrinsics.feather; sample_data width/height).
+DEFAULT_IMAGE_SIZES = {"kitti": KITTI_IMAGE_SIZE}
+
+
 def check_camera(log, camera: str | None) -> str:
-    """``camera`` (default: the log's default camera), checked against the log's cameras."""
+    """``camera`` (default: the log's default camera), checked against the log's cameras; a
+    log without cameras is an error that names what is missing (:data:`CAMERA_SOURCES`).
+
+    The modes gt-accumulation and sc-gt need only the camera model and the image size, not the
+    images: a KITTI log with its calibration file and no image_02 is labelled at the size of
+    :data:`DEFAULT_IMAGE_SIZES` (or ``--image-size``)."""
     if not log.camera_names:
+        calib = (calib_path(log.root, log.name) if isinstance(log, KittiTrackingSequence)
+                 else None)
+        source = CAMERA_SOURCES.get(log.dataset, "its camera calibration").format(calib=calib)
+        hint = "" if getattr(log, "frames", None) else (
+            "; no frames of it were found either: is --root the folder that holds the "
+            "dataset's folders (KITTI: calib/, velodyne/, label_02/, e.g. .../training)?")
         raise ConfigError(f"{log.dataset} log {log.name} has no cameras: amodal labels need "
-                          f"one (KITTI: a calib file; nuScenes/Argoverse 2: camera images)")
+                          f"the camera model, from {source}, which is missing{hint}")
     camera = camera or log.default_camera or log.camera_names[0]
     if camera not in log.camera_names:
         raise ConfigError(f"{log.dataset} log {log.name} has no camera {camera!r} (cameras: "
                           f"{', '.join(log.camera_names)})")
     return camera
+
+
+def set_image_size(log, size) -> None:
+    """Give ``log``'s cameras the image size ``size`` (width, height): ``--image-size W H`` for
+    a KITTI log, whose calibration does not record it (default: the first image's size, or
+    :data:`DEFAULT_IMAGE_SIZES` without images). Other datasets record each camera's size,
+    and asking to change it is an error."""
+    try:
+        width, height = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise ConfigError(f"--image-size takes two whole numbers W H, not {size!r}") from None
+    if width <= 0 or height <= 0:
+        raise ConfigError(f"--image-size {width} {height}: the width and height must be positive")
+    if not isinstance(log, KittiTrackingSequence):
+        raise ConfigError(f"--image-size is for KITTI logs, whose calibration has no image "
+                          f"size; a {log.dataset} log records each camera's size")
+    log.calib.image_size = (width, height)
 
 
 def label_sequence(root, sequence, cfg: LabelConfig, estimator=None,

@@ -52,6 +52,7 @@ from seqshape.amodal.labeler import (
     preload_estimator,
     preparations,
     read_label_settings,
+    set_image_size,
     settings_differences,
     start_labels,
     submit_prepare,
@@ -90,6 +91,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          fit_box_below={"metavar": "N"}, trim={"metavar": "P"})
     parser.add_argument("--no-refine", dest="refine", action="store_const", const="none",
                         help="the paper's forward-only completion (= --refine none)")
+    parser.add_argument("--image-size", type=int, nargs=2, default=None, metavar=("W", "H"),
+                        help="the camera image size in pixels, for a KITTI log without images "
+                             "(default: the first image's size, else KITTI's 1242 x 375; "
+                             "Argoverse 2 and nuScenes record each camera's size)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads for the estimator (default 1: its per-frame "
                              "batches are small, and more threads only add overhead, a lot of "
@@ -177,7 +182,10 @@ def _settings(args, log, cfg: LabelConfig, camera: str, weights: str | None) -> 
     if cfg.backend == "auto" and args.mode != "gt-accumulation":  # int8 or float32: ask
         cfg = replace(cfg, backend=_estimator(args.mode, args.checkpoint, args.backend,
                                               args.placement, args.max_points).backend)
-    return label_settings(cfg, log, camera, max_frames=args.max_frames, weights=weights)
+    settings = label_settings(cfg, log, camera, max_frames=args.max_frames, weights=weights)
+    if getattr(args, "image_size", None) is not None:  # recorded only when given
+        settings["image_size"] = list(args.image_size)
+    return settings
 
 
 def _weights(args) -> str | None:
@@ -295,6 +303,8 @@ def _open_one(args: argparse.Namespace, name: str | None, pool=None) -> tuple:
         args = argparse.Namespace(**{**vars(args), "sequence": name})
     log = open_args_log(args)
     cameras = cameras_of(args, log)
+    if args.image_size is not None:
+        set_image_size(log, args.image_size)
     values = config_kwargs(args, FIELDS)
     cfg = LabelConfig(**{**values, "instances": values["instances"] or None})
     tasks = {} if pool is None else {cam: submit_prepare(pool, log, cfg, cam)
