@@ -368,12 +368,17 @@ def test_manifest_symlinks_out_of_the_folder_are_refused(tmp_path):
         TrackDataset(ds.path)[0]
     with pytest.raises(DataError, match="outside the dataset folder"):
         TrackDataset.union([ds.path, tmp_path / "other"], [1.0, 1.0])
-    # a link that stays inside the folder is fine
+    # a link that stays inside the folder is followed; the file it reaches must hold the
+    # track the manifest names (issue 45: it was loaded under the file's own id)
     (ds.path / "tracks" / "b.npz").unlink()
     os.symlink(ds.path / "tracks" / "a.npz", ds.path / "tracks" / "b.npz")
     doc["tracks"][0]["file"] = "tracks/a.npz"
     mpath.write_text(json.dumps(doc))
-    assert TrackDataset(ds.path).get("b").track_id == "a"
+    assert TrackDataset(ds.path).get("a").track_id == "a"
+    with pytest.raises(DataError, match="holds track 'a', but .*manifest.json lists this file "
+                                        "as track 'b'") as info:
+        TrackDataset(ds.path).get("b")
+    assert info.value.path == str(ds.path / "tracks" / "b.npz")
 
 
 # ----------------------------------------------------------------------------- meshes

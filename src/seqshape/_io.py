@@ -14,6 +14,7 @@ import contextlib
 import json
 import os
 import re
+import stat
 import tempfile
 import zlib
 from collections.abc import Iterator
@@ -23,6 +24,7 @@ from typing import IO, Any
 import numpy as np
 
 from seqshape.errors import DataError
+from seqshape.limits import MAX_FILE_BYTES
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
@@ -79,17 +81,97 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
-def read_text(path: str | Path, what: str) -> str:
-    """The text of ``path``; a missing or unreadable file is a DataError naming it.
+def check_regular(path: str | Path, what: str, kind: str = "text") -> int:
+    """The size of ``path`` after checking, without opening it, that it is a regular file
+    (symbolic links followed) of at most ``MAX_FILE_BYTES[kind]`` bytes.
+
+    A FIFO, a device, a socket or a folder where a file belongs is refused at once (opening a
+    FIFO would block until a writer comes); every refusal is a :class:`DataError` naming the
+    path and the kind of file (``what``).
+    """
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise DataError(path, f"{what} not found") from None
+    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the name
+        raise DataError(path, f"unreadable {what} ({_words(exc)})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise DataError(path, f"{what} is {_file_type(st.st_mode)}, not a regular file; "
+                              "refusing to read it")
+    limit = MAX_FILE_BYTES[kind]
+    if st.st_size > limit:
+        raise DataError(path, f"{what} of {st.st_size} bytes is larger than any real one "
+                              f"(limit {limit} bytes); refusing to read it")
+    return st.st_size
+
+
+@contextlib.contextmanager
+def open_regular(path: str | Path, what: str, kind: str = "text") -> Iterator[IO[bytes]]:
+    """Open ``path`` for reading bytes after :func:`check_regular`; the file is opened without
+    blocking and checked again on its descriptor, so a FIFO swapped in between cannot hang.
+    Errors while opening are :class:`DataError` naming the path."""
+    check_regular(path, what, kind)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as exc:
+        raise DataError(path, f"unreadable {what} ({_words(exc)})") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise DataError(path, f"{what} is {_file_type(mode)}, not a regular file; "
+                                  "refusing to read it")
+        fh = os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+    with fh:
+        yield fh
+
+
+def read_bytes(path: str | Path, what: str, kind: str = "text") -> bytes:
+    """The bytes of the regular file ``path`` (:func:`open_regular`, bounded by
+    ``MAX_FILE_BYTES[kind]``); a read error is a :class:`DataError` naming it."""
+    with open_regular(path, what, kind) as fh:
+        try:
+            data = fh.read(MAX_FILE_BYTES[kind] + 1)
+        except OSError as exc:
+            raise DataError(path, f"unreadable {what} ({_words(exc)})") from None
+    if len(data) > MAX_FILE_BYTES[kind]:  # grew since the check
+        raise DataError(path, f"{what} is larger than {MAX_FILE_BYTES[kind]} bytes")
+    return data
+
+
+def read_text(path: str | Path, what: str, encoding: str = "utf-8") -> str:
+    """The text of ``path``; a missing, unreadable, non-regular or over-long file, bytes that
+    are not ``encoding``, or a NUL character is a DataError naming it (and the NUL's line).
 
     ``what`` names the kind of file in the message ("label file", "calibration file", ...).
     """
+    data = read_bytes(path, what, "text")
     try:
-        return Path(path).read_text()
-    except FileNotFoundError:
-        raise DataError(path, f"{what} not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
+        text = data.decode(encoding)
+    except UnicodeDecodeError as exc:
         raise DataError(path, f"unreadable {what} ({exc})") from None
+    if "\0" in text:
+        line = len((text[:text.index("\0")] + "x").splitlines())  # as splitlines numbers
+        raise DataError(path, f"NUL character in a {what} (a binary file, or a corrupt "
+                              "one)", line=line)
+    if "\r" in text:  # universal newlines, as Path.read_text gives
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
+    return text
+
+
+def _words(exc: BaseException) -> str:
+    return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+
+
+def _file_type(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
 
 
 MAX_STEM = 120  #: longest name :func:`safe_stem` returns

@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+import seqshape.limits as limits
 from seqshape._io import atomic_write_text, read_text
 from seqshape.errors import DataError
 
@@ -291,7 +292,9 @@ def read_calib(path: str | Path, image_size: tuple[int, int] = KITTI_IMAGE_SIZE)
     ignored. Malformed lines raise :class:`DataError` naming the file and line: a wrong count,
     a non-numeric or non-finite value, a duplicate key, an ``R_rect`` or a rotation block of
     ``Tr_velo_cam`` / ``Tr_imu_velo`` that is not a rotation (:func:`rotation_problem`), a
-    translation beyond 100 m, or a projection matrix whose intrinsic block is singular.
+    translation beyond 100 m, or a projection matrix whose intrinsic block is singular or that
+    holds an entry beyond ``limits.MAX_PIXEL``; a NUL character (a key glued to its numbers)
+    and a file that is not a regular file (a FIFO, a folder) are refused too.
     """
     path = Path(path)
     text = read_text(path, "calibration file")
@@ -333,8 +336,9 @@ def read_calib(path: str | Path, image_size: tuple[int, int] = KITTI_IMAGE_SIZE)
 #: 1e-6.
 ROTATION_TOLERANCE = 1e-3
 
-#: Largest translation (m) of ``Tr_velo_cam`` / ``Tr_imu_velo``: sensors of one vehicle.
-MAX_SENSOR_OFFSET = 100.0
+#: Largest translation (m) of ``Tr_velo_cam`` / ``Tr_imu_velo``: sensors of one vehicle
+#: (:mod:`seqshape.limits`).
+MAX_SENSOR_OFFSET = limits.MAX_SENSOR_OFFSET
 
 #: Largest condition number of the intrinsic (left 3x3) block of a projection matrix.
 MAX_CONDITION = 1e10
@@ -362,6 +366,10 @@ def _matrix_problem(key: str, nums: np.ndarray) -> str | None:
         return rotation_problem(nums)
     m = nums.reshape(3, 4)
     if key.startswith("P"):
+        big = np.abs(nums).max()
+        if big > limits.MAX_PIXEL:
+            return (f"entry {big:.6g} is beyond {limits.MAX_PIXEL:g} (pixels): no real "
+                    "camera's projection (a unit mistake, or a corrupt file)")
         cond = np.linalg.cond(m[:, :3])
         if not cond <= MAX_CONDITION:
             return f"the intrinsic block P[:, :3] is singular (condition number {cond:.3g})"

@@ -5,9 +5,12 @@ Modules are imported only when their command runs, so ``seqshape --help`` is ins
 option's help shows its default (:class:`HelpFormatter`).
 
 Errors end in one line on stderr and exit status 1, never a traceback: a
-:class:`~seqshape.errors.SeqshapeError` (bad data or options), and an ``OSError`` such as an
+:class:`~seqshape.errors.SeqshapeError` (bad data or options), an ``OSError`` such as an
 output folder that cannot be written (read-only, permission denied, disk full), which names the
-path (``-v`` adds the traceback). Ctrl-C exits with 130.
+path, an out-of-memory error (``MemoryError``, or an inference runtime's failed allocation),
+and any other exception (a bug, or an input no check foresaw): :func:`unexpected_error_line`
+names the command, its input options and what to do. ``--debug`` (or ``-v``) adds the
+traceback. Ctrl-C exits with 130.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import errno
 import importlib
 import logging
 import sys
+import traceback
 from types import ModuleType
 
 from seqshape._version import __version__
@@ -69,7 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "and automatic amodal segmentation labels.")
     parser.add_argument("--version", action="version", version=f"seqshape {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true",
-                        help="debug logging, and the traceback of an I/O error")
+                        help="debug logging, and the traceback of any error")
+    parser.add_argument("--debug", action="store_true",
+                        help="print the traceback of any error (after its one-line message)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, help_) in COMMANDS.items():
         sub.add_parser(name, help=help_, add_help=False)
@@ -116,6 +122,63 @@ def os_error_line(exc: OSError, out: object = None) -> str:
     return (f"{where}: " if where else "") + words + (f" ({hint})" if hint else "")
 
 
+#: options that name a command's input, in the order the one-line error lists them
+_INPUT_OPTIONS = ("dataset", "root", "sequence", "data", "track", "trajectories", "meshes",
+                  "checkpoint", "baseline", "pred", "gt", "kitti", "config")
+
+#: words of an exception that say an allocation failed (onnxruntime's Fail and
+#: RuntimeException, torch's and numpy's errors, C++ std::bad_alloc)
+_OOM_WORDS = ("out of memory", "bad_alloc", "failed to allocate", "allocation failed",
+              "cannot allocate memory", "unable to allocate", "allocate memory")
+
+
+def is_out_of_memory(exc: BaseException) -> bool:
+    """Is ``exc`` a failed allocation: a ``MemoryError`` or an error whose words say so?
+
+    >>> is_out_of_memory(MemoryError()), is_out_of_memory(RuntimeError("x"))
+    (True, False)
+    >>> is_out_of_memory(RuntimeError("[ONNXRuntimeError] : 1 : FAIL : bad_alloc"))
+    True
+    """
+    if isinstance(exc, MemoryError):
+        return True
+    text = str(exc).lower()
+    return any(word in text for word in _OOM_WORDS)
+
+
+def command_inputs(args: argparse.Namespace) -> str:
+    """The input options of a parsed command, as the user gave them (``--root R``), for a
+    message; ``""`` when it has none.
+
+    >>> command_inputs(argparse.Namespace(root="kitti", out="x", sequence=None))
+    '--root kitti'
+    """
+    given = [(k, getattr(args, k)) for k in _INPUT_OPTIONS
+             if getattr(args, k, None) not in (None, "", [], False)]
+    return ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in given)
+
+
+def unexpected_error_line(command: str, exc: BaseException, args: argparse.Namespace) -> str:
+    """One line for an exception no check turned into a :class:`SeqshapeError`: the command,
+    what went wrong, the input, and what to do.
+
+    >>> import argparse
+    >>> unexpected_error_line("stats", ValueError("bad"), argparse.Namespace(dataset="ds"))
+    'seqshape stats: error: unexpected ValueError: bad (input: --dataset ds); ...'
+    """
+    words = " ".join(str(exc).split())[:300] or "(no message)"
+    inputs = command_inputs(args)
+    where = f" (input: {inputs})" if inputs else ""
+    if is_out_of_memory(exc):
+        return (f"seqshape {command}: error: out of memory{where}: {type(exc).__name__}: "
+                f"{words}; hint: process less at once (fewer --workers, a smaller "
+                "--batch-size, fewer tracks or frames per run) or use a machine with more "
+                "memory")
+    return (f"seqshape {command}: error: unexpected {type(exc).__name__}: {words}{where}; "
+            "hint: check that input (rerun with --debug for the traceback) and report it "
+            "with that traceback if the input is sound")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -128,20 +191,25 @@ def main(argv: list[str] | None = None) -> int:
     args = sub.parse_args(rest)
     logging.basicConfig(level=logging.DEBUG if head.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
+    debug = head.debug or head.verbose
     try:
         return int(module.run(args) or 0)
     except SeqshapeError as exc:
-        print(f"seqshape {head.command}: error: {exc}", file=sys.stderr)
-        return 1
+        line = f"seqshape {head.command}: error: {exc}"
+    except MemoryError as exc:
+        line = unexpected_error_line(head.command, exc, args)
     except OSError as exc:  # unwritable output, disk full...: the path, not a traceback
-        logging.getLogger("seqshape.cli").debug("traceback of the error below", exc_info=True)
-        print(f"seqshape {head.command}: error: {os_error_line(exc, getattr(args, 'out', None))}",
-              file=sys.stderr)
-        return 1
+        line = f"seqshape {head.command}: error: {os_error_line(exc, getattr(args, 'out', None))}"
     except KeyboardInterrupt:
         print(f"seqshape {head.command}: interrupted; rerun the same command to resume",
               file=sys.stderr)
         return 130
+    except Exception as exc:  # noqa: BLE001 - the one top-level handler: no traceback
+        line = unexpected_error_line(head.command, exc, args)
+    if debug:
+        traceback.print_exc(file=sys.stderr)
+    print(line, file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

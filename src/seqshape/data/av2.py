@@ -61,6 +61,8 @@ from pathlib import Path
 
 import numpy as np
 
+import seqshape.limits as limits
+from seqshape._io import check_regular
 from seqshape.camera import PinholeCamera
 from seqshape.data.sequence import (
     MAX_RANGE,
@@ -68,7 +70,6 @@ from seqshape.data.sequence import (
     Box3D,
     DrivingLog,
     box_problems,
-    drop_nonfinite_points,
     unit_quaternions,
 )
 from seqshape.errors import ConfigError, DataError, require
@@ -221,8 +222,9 @@ def read_table(path: Path, columns: dict[str, str], what: str) -> dict[str, np.n
     """
     feather = require("pyarrow.feather", "Argoverse 2 logs", "pyarrow")
     pa = require("pyarrow", "Argoverse 2 logs")
-    if not path.is_file():
+    if not path.exists():
         raise DataError(path, f"missing {what}")
+    check_regular(path, what, "table")  # a FIFO would block pyarrow's open
     try:
         table = feather.read_table(path, memory_map=False)
         table.validate(full=True)  # offsets and lengths inside their buffers, UTF-8 strings
@@ -444,14 +446,16 @@ class Av2Log(DrivingLog):
         return self._ns(frame) * 1e-9
 
     def points(self, frame: int) -> np.ndarray:
-        """``(N, 4)`` float32 ``x, y, z, intensity``, sensor frame (module doc)."""
+        """``(N, 4)`` float32 ``x, y, z, intensity``, sensor frame (module doc), checked by
+        :func:`seqshape.limits.check_sweep`: a sweep whose points lie beyond 1 km of the
+        sensor (another log's sweep, points in city coordinates) is refused."""
         path = self.sweep_path(frame)
         t = read_table(path, _SWEEP_COLUMNS, "LiDAR sweep")
         xyz = np.stack([t["x"], t["y"], t["z"]], -1).astype(np.float64) - self.lidar_offset
         out = np.empty((len(xyz), 4), dtype=np.float32)
         out[:, :3] = xyz
         out[:, 3] = t["intensity"]
-        return drop_nonfinite_points(out, path)
+        return limits.check_sweep(out, path, "LiDAR sweep", "x y z intensity")
 
     def boxes(self, frame: int) -> list[Box3D]:
         self._ns(frame)

@@ -23,7 +23,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from seqshape._io import atomic_write_json, contained_path
+from seqshape._io import atomic_write_json, contained_path, read_bytes
 from seqshape._version import __version__
 from seqshape.data.track import Track, load_track, save_track
 from seqshape.errors import ConfigError, DataError
@@ -57,10 +57,18 @@ class TrackDataset:
     def __getitem__(self, i: int) -> Track:
         if not -len(self) <= i < len(self):
             raise IndexError(f"track index {i} out of range for {len(self)} tracks")
-        file = Path(self.entries[i]["file"])
+        entry = self.entries[i]
+        file = Path(entry["file"])
         if file.is_absolute():  # made absolute by union(), which checked it inside its folder
-            return load_track(file)
-        return load_track(_track_path(self.path, file))
+            path, source = file, f"its dataset's {MANIFEST}"
+        else:
+            path, source = _track_path(self.path, file), str(self.path / MANIFEST)
+        track = load_track(path)
+        if track.track_id != entry["track_id"]:
+            raise DataError(path, f"holds track {track.track_id!r}, but {source} lists this "
+                                  f"file as track {entry['track_id']!r}: the file was "
+                                  "replaced or the manifest edited; make them agree")
+        return track
 
     def __iter__(self) -> Iterator[Track]:
         for i in range(len(self)):
@@ -162,12 +170,11 @@ def read_manifest(folder: str | Path) -> dict[str, Any]:
 
 def _read_json(path: Path) -> Any:
     """The JSON value in ``path``; :class:`DataError` for unreadable, non-UTF-8 or bad JSON."""
+    data = read_bytes(path, "JSON file", "json")
     try:
-        text = path.read_bytes().decode("utf-8")
+        text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise DataError(path, f"not UTF-8 text (byte {exc.start}): not a JSON file") from None
-    except OSError as exc:
-        raise DataError(path, f"unreadable file ({exc.strerror or exc})") from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

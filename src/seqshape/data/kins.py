@@ -59,7 +59,7 @@ from typing import Any
 
 import numpy as np
 
-from seqshape._io import atomic_write_json
+from seqshape._io import atomic_write_json, read_bytes
 from seqshape.data.categories import KINS_CATEGORIES
 from seqshape.errors import DataError, require
 
@@ -661,12 +661,7 @@ class _Invalid(Exception):
 def _load(path: str | Path) -> dict[str, Any]:
     """The JSON object in ``path``; :class:`DataError` naming the file on any problem."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise DataError(path, "file not found") from None
-    except OSError as exc:
-        raise DataError(path, f"unreadable file ({exc.strerror or exc})") from None
+    data = read_bytes(path, "file", "json")
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -702,7 +697,10 @@ def _validate(doc: dict, ann_keys: Sequence[str], segm_keys: Sequence[str]) -> N
     for i, cat in enumerate(doc["categories"]):
         if not isinstance(cat, dict) or "id" not in cat or "name" not in cat:
             raise _Invalid(f"categories[{i}]: needs 'id' and 'name'")
-        cats.add(_id(cat["id"], f"categories[{i}].id"))
+        cat_id = _id(cat["id"], f"categories[{i}].id")
+        if cat_id in cats:
+            raise _Invalid(f"categories[{i}]: duplicate category id {cat_id}")
+        cats.add(cat_id)
     ids = set()
     for i, ann in enumerate(doc["annotations"]):
         where = f"annotations[{i}]"
@@ -732,6 +730,7 @@ def _check_object(obj, keys, where: str) -> None:
 def _check_images(images: list) -> dict[int, tuple[int, int]]:
     """``{image id: (height, width)}`` of checked ``images`` entries."""
     sizes = {}
+    names: dict[str, int] = {}
     for i, img in enumerate(images):
         _check_object(img, IMAGE_KEYS, f"images[{i}]")
         image_id = _id(img["id"], f"images[{i}].id")
@@ -739,6 +738,11 @@ def _check_images(images: list) -> dict[int, tuple[int, int]]:
             raise _Invalid(f"images[{i}]: duplicate image id {image_id}")
         if not isinstance(img["file_name"], str) or not img["file_name"]:
             raise _Invalid(f"images[{i}].file_name: expected a non-empty string")
+        first = names.setdefault(img["file_name"], i)
+        if first != i:
+            raise _Invalid(f"images[{i}]: file_name {img['file_name']!r} is also images[{first}]"
+                           " (one entry per image: its annotations would be split or counted "
+                           "twice)")
         if "frame" in img:
             _id(img["frame"], f"images[{i}].frame")
         try:

@@ -32,8 +32,9 @@ from pathlib import Path
 import numpy as np
 
 import seqshape.data.crop as _crop
+import seqshape.limits as limits
 from seqshape._deprecated import forward
-from seqshape._io import atomic_write_bytes, atomic_write_text, read_text
+from seqshape._io import atomic_write_bytes, atomic_write_text, open_regular, read_text
 from seqshape.camera import KittiCalib, PinholeCamera, cam_to_velo, read_calib, velo_to_cam
 from seqshape.data.categories import KITTI_CLASSES
 from seqshape.data.crop import CropConfig
@@ -43,8 +44,7 @@ from seqshape.data.sequence import (
     MAX_RANGE,
     Box3D,
     DrivingLog,
-    drop_nonfinite_points,
-    read_float32,
+    read_sweep,
 )
 from seqshape.data.track import Track
 from seqshape.errors import ConfigError, DataError
@@ -103,11 +103,11 @@ def oxts_path(root, sequence) -> Path:
 def png_size(path) -> tuple[int, int]:
     """(width, height) of a PNG file, read from its header (no decoding)."""
     path = Path(path)
-    try:
-        with open(path, "rb") as fh:
+    with open_regular(path, "image", "image") as fh:
+        try:
             head = fh.read(24)
-    except OSError as exc:
-        raise DataError(path, f"cannot read image ({exc})") from None
+        except OSError as exc:
+            raise DataError(path, f"cannot read image ({exc})") from None
     if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
         raise DataError(path, "not a PNG file")
     width, height = struct.unpack(">II", head[16:24])
@@ -124,11 +124,11 @@ def read_velodyne(path) -> np.ndarray:
 
     A byte length that is not a multiple of 16 (4 float32 per point) is a :class:`DataError`;
     points holding a NaN or an infinity are dropped, with one warning naming the file and the
-    count.
+    count; so are up to 1 % of points with a coordinate beyond 1 km or a negative reflectance,
+    and more refuses the file, naming the layout its bytes fit (float64, or (N, 3) float32):
+    :func:`seqshape.limits.check_sweep`.
     """
-    path = Path(path)
-    raw = read_float32(path, 4, "velodyne file", "x y z reflectance")
-    return drop_nonfinite_points(raw.reshape(-1, 4).astype(np.float32, copy=False), path)
+    return read_sweep(Path(path), 4, "velodyne file", "x y z reflectance")
 
 
 def write_velodyne(path, points) -> None:
@@ -180,9 +180,10 @@ _LABEL_FLOATS = ("truncated", "occluded", "alpha", "bbox left", "bbox top", "bbo
                  "bbox bottom", "height", "width", "length", "x", "y", "z", "rotation_y",
                  "score")
 
-#: Largest magnitude of a 2D box coordinate (pixels) and of an angle (rad) in a label row.
-MAX_PIXEL = 1.0e5
-MAX_ANGLE = 2 * math.pi
+#: Largest magnitude of a 2D box coordinate (pixels) and of an angle (rad) in a label row
+#: (:mod:`seqshape.limits`).
+MAX_PIXEL = limits.MAX_PIXEL
+MAX_ANGLE = limits.MAX_ANGLE
 #: Largest frame number (KITTI names frames with six digits).
 MAX_FRAME = 999_999
 _OCCLUSION_LEVELS = frozenset({-1.0, 0.0, 1.0, 2.0, 3.0})
@@ -193,10 +194,18 @@ class _RowError(ValueError):
 
 
 def _int_field(text: str, name: str) -> int:
+    if len(text) > 20:  # beyond int64; int() of 5000 digits is slow, then refused anyway
+        raise _RowError(f"{name} must be an integer of at most 20 characters, got "
+                        f"{_short(text)}")
     try:
         return int(text)
     except ValueError:
         raise _RowError(f"{name} must be an integer, got {text!r}") from None
+
+
+def _short(text: str) -> str:
+    """``text`` quoted, cut to 24 characters (with its length) when longer."""
+    return repr(text) if len(text) <= 24 else f"{text[:24]!r}... ({len(text)} characters)"
 
 
 def _float_fields(parts: list[str], names) -> list[float]:
@@ -217,8 +226,9 @@ def _parse_label(parts: list[str]) -> KittiLabel:
     track = _int_field(parts[1], "track_id")
     if not 0 <= frame <= MAX_FRAME:
         raise _RowError(f"frame {frame} is not in 0..{MAX_FRAME} (six-digit frame names)")
-    if track < -1:
-        raise _RowError(f"track_id must be >= -1 (-1 for DontCare), got {track}")
+    if not -1 <= track <= limits.MAX_ID:
+        raise _RowError(f"track_id must be in -1..{limits.MAX_ID} (-1 for DontCare), got "
+                        f"{_short(parts[1])}")
     f = _float_fields(parts[3:], _LABEL_FLOATS)
     trunc, occ, alpha, bbox, dims, loc, ry = f[0], f[1], f[2], f[3:7], f[7:10], f[10:13], f[13]
     if not -1 <= trunc <= 2:
@@ -258,7 +268,7 @@ def read_labels(path) -> list[KittiLabel]:
 
     Every row is validated; a malformed one is a :class:`DataError` naming the file and line
     (docs/kitti.md, "What the readers refuse"): a wrong column count, a frame or track id that
-    is not an integer, a frame outside 0..999999, a track id below -1, a non-finite number, ``truncated`` outside [-1, 2], ``occluded`` not
+    is not an integer, a frame outside 0..999999, a track id outside -1..999999, a non-finite number, ``truncated`` outside [-1, 2], ``occluded`` not
     one of -1..3, a 2D box with left > right or top > bottom, and, for rows with a box (not
     DontCare, track id >= 0), a dimension <= 0 or above 30 m, a location more than 1 km away,
     an angle beyond 2 pi, or a second row of the same track in the same frame. Types KITTI does

@@ -58,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
+from seqshape._io import read_bytes
 from seqshape.camera import PinholeCamera
 from seqshape.data.sequence import (
     MAX_RANGE,
@@ -65,8 +66,7 @@ from seqshape.data.sequence import (
     Box3D,
     DrivingLog,
     box_problems,
-    drop_nonfinite_points,
-    read_float32,
+    read_sweep,
     unit_quaternions,
 )
 from seqshape.errors import ConfigError, DataError
@@ -139,8 +139,7 @@ def read_pcd_bin(path) -> np.ndarray:
     points holding a NaN or an infinity are dropped, with one warning naming the file and the
     count.
     """
-    raw = read_float32(path, 5, "LiDAR file", "x y z intensity ring")
-    return drop_nonfinite_points(raw.reshape(-1, 5), path)
+    return read_sweep(path, 5, "LiDAR file", "x y z intensity ring")
 
 
 def _rigid(rotation: np.ndarray, translation) -> np.ndarray:
@@ -190,11 +189,9 @@ def find_version(root, version: str | None = None) -> tuple[Path, str]:
 
 def _read_table(path: Path) -> list[dict]:
     """One JSON table: a list of records, each a dict with a string ``token``."""
+    data = read_bytes(path, "nuScenes table", "json")
     try:
-        with open(path, "rb") as fh:
-            records = json.load(fh)
-    except FileNotFoundError:
-        raise DataError(path, "nuScenes table not found") from None
+        records = json.loads(data)
     except json.JSONDecodeError as exc:
         raise DataError(path, f"malformed JSON: {exc.msg}", line=exc.lineno) from None
     except (OSError, UnicodeDecodeError, ValueError, RecursionError, MemoryError) as exc:
@@ -207,12 +204,34 @@ def _read_table(path: Path) -> list[dict]:
 
 
 def _by_token(records: list, path: Path) -> dict[str, dict]:
-    out = {}
+    """``{token: record}``; a record that is not an object with a non-empty string
+    ``token``, or a token twice, is a :class:`DataError` naming the table."""
+    out: dict[str, dict] = {}
     for i, rec in enumerate(records):
-        if not isinstance(rec, dict) or not isinstance(rec.get("token"), str):
-            raise DataError(path, f"record {i} is not an object with a string 'token'")
-        out[rec["token"]] = rec
+        token = _token(rec, i, path)
+        if out.setdefault(token, rec) is not rec:
+            raise DataError(path, f"record {i}: token {token!r} appears twice (each record "
+                                  "needs its own token)")
     return out
+
+
+def _all_numbers(value) -> bool:
+    """Is ``value`` a (nested) JSON list of numbers only (a boolean is not a number)?"""
+    if not isinstance(value, list):
+        return False
+    return all(_all_numbers(x) if isinstance(x, list) else
+               isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+
+
+def _token(rec, i: int, path: Path) -> str:
+    """The record's ``token``: a non-empty string, else a DataError naming the table."""
+    if not isinstance(rec, dict):
+        raise DataError(path, f"record {i} is not an object with a string 'token'")
+    token = rec.get("token")
+    if not isinstance(token, str) or not token:
+        raise DataError(path, f"record {i} is not an object with a string 'token' "
+                              f"(token {token!r})")
+    return token
 
 
 class NuScenesTables:
@@ -264,10 +283,14 @@ class NuScenesTables:
         return rec
 
     def vector(self, rec: dict, key: str, table: str, shape) -> np.ndarray:
-        """``rec[key]`` as a finite float64 array of ``shape``, or a DataError."""
+        """``rec[key]`` as a finite float64 array of ``shape`` (a JSON list of numbers; a
+        boolean is not a number), or a DataError."""
+        value = self.field(rec, key, table)
         try:
-            v = np.asarray(self.field(rec, key, table), dtype=np.float64).reshape(shape)
-        except (TypeError, ValueError):
+            if not _all_numbers(value):
+                raise TypeError(key)
+            v = np.asarray(value, dtype=np.float64).reshape(shape)
+        except (TypeError, ValueError, OverflowError):
             raise DataError(self.path(table), f"record {rec.get('token')!r}: field {key!r} "
                                               f"must be {shape} numbers") from None
         if not np.all(np.isfinite(v)):
@@ -333,10 +356,27 @@ class NuScenesTables:
         return {t: ego[t] for t in needed if t in ego}
 
     def _index_annotations(self, records: list) -> dict[str, list[dict]]:
+        """Annotations by sample; a record without a string token, sample_token and
+        instance_token, a token twice, or an instance annotated twice in one sample is a
+        :class:`DataError` naming sample_annotation.json."""
         path, out = self.path("sample_annotation"), {}
+        tokens: dict[str, int] = {}
+        seen: dict[tuple[str, str], str] = {}
         for i, rec in enumerate(records):
-            if not isinstance(rec, dict) or not isinstance(rec.get("sample_token"), str):
+            token = _token(rec, i, path)
+            if not isinstance(rec.get("sample_token"), str):
                 raise DataError(path, f"record {i} is not an object with a 'sample_token'")
+            first = tokens.setdefault(token, i)
+            if first != i:
+                raise DataError(path, f"records {first} and {i}: token {token!r} appears "
+                                      "twice")
+            instance = self.field(rec, "instance_token", "sample_annotation", str)
+            self.get("instance", instance, f"sample_annotation {token}")
+            other = seen.setdefault((rec["sample_token"], instance), token)
+            if other != token:
+                raise DataError(path, f"records {other!r} and {token!r}: instance "
+                                      f"{instance!r} annotated twice in sample "
+                                      f"{rec['sample_token']!r}")
             out.setdefault(rec["sample_token"], []).append(rec)
         return out
 
@@ -550,8 +590,14 @@ class NuScenesLog(DrivingLog):
         return int(n)
 
     def _attributes(self, ann: dict) -> list[str]:
-        tokens = ann.get("attribute_tokens") or []
-        if not self.tables.attribute or not isinstance(tokens, list):
+        tokens = ann.get("attribute_tokens")
+        if tokens is None:
+            return []
+        if not isinstance(tokens, list) or not all(isinstance(a, str) for a in tokens):
+            raise DataError(self.tables.path("sample_annotation"),
+                            f"record {ann.get('token')!r}: attribute_tokens must be a list "
+                            f"of token strings, got {tokens!r:.80}")
+        if not self.tables.attribute:
             return []
         return [str(self.tables.get("attribute", a, f"sample_annotation {ann.get('token')}")
                     .get("name")) for a in tokens]

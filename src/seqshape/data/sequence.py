@@ -30,7 +30,6 @@ ids (``VEHICLE_CLASSES``, ``CLASS_TO_KINS``, re-exported here) are defined once,
 from __future__ import annotations
 
 import abc
-import os
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -38,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+import seqshape.limits as limits
+from seqshape._io import check_regular
 from seqshape.camera import PinholeCamera
 from seqshape.data.categories import CLASS_TO_KINS as CLASS_TO_KINS  # re-exported
 from seqshape.data.categories import VEHICLE_CLASSES
@@ -60,19 +61,11 @@ def parse_classes(text: str | Iterable[str] | None) -> tuple[str, ...]:
 # ---------------------------------------------------------------------------------------------
 # what every reader refuses (docs/datasets.md, "What the readers refuse")
 
-#: Largest box dimension (m) a reader accepts: longer than any road vehicle (an articulated
-#: bus is 18-25 m); a dimension <= 0 or above this is garbage.
-MAX_BOX_SIZE = 30.0
-
-#: Farthest (m) a box centre or a sensor may be from the sensor frame's origin.
-MAX_RANGE = 1000.0
-
-#: Largest coordinate (m) of a pose in a dataset's world frame (city, global, GPS Mercator):
-#: 10,000 km, beyond any real frame, so only overflowed or corrupt values are refused.
-MAX_WORLD = 1.0e7
-
-#: A quaternion whose norm is within this of 1 is normalised; any other is refused.
-QUATERNION_TOLERANCE = 1e-3
+# the limits themselves live in seqshape.limits (one module for every reader); named here too
+MAX_BOX_SIZE = limits.MAX_BOX_SIZE
+MAX_RANGE = limits.MAX_RANGE
+MAX_WORLD = limits.MAX_WORLD
+QUATERNION_TOLERANCE = limits.QUATERNION_TOLERANCE
 
 
 def box_problems(centres, sizes, yaws=None) -> tuple[np.ndarray, list[str]]:
@@ -132,21 +125,40 @@ def unit_quaternions(q, path, what: str = "quaternion") -> np.ndarray:
 
 def read_float32(path, columns: int, what: str, names: str) -> np.ndarray:
     """The little-endian float32 values of a headerless point file (KITTI ``.bin``, nuScenes
-    ``.pcd.bin``) as a flat array; a missing or unreadable file, or a byte length that is not
-    a whole number of ``columns``-float points, is a :class:`DataError` naming it."""
+    ``.pcd.bin``) as a flat array; a missing, unreadable or non-regular file (a FIFO, a
+    folder), one larger than ``limits.MAX_FILE_BYTES["points"]``, or a byte length that is
+    not a whole number of ``columns``-float points is a :class:`DataError` naming it."""
     path = Path(path)
+    size = check_regular(path, what, "points")
+    if size % (4 * columns):
+        raise DataError(path, _length_refusal(size, columns, what, names))
     try:
-        raw = np.fromfile(path, dtype="<f4")  # drops a 1-3 byte tail: compare with the size
-        size = os.stat(path).st_size
-    except FileNotFoundError:
-        raise DataError(path, f"{what} not found") from None
+        raw = np.fromfile(path, dtype="<f4")
     except (OSError, ValueError) as exc:
         raise DataError(path, f"unreadable {what} ({exc})") from None
-    if size % (4 * columns) or raw.nbytes != size:
-        raise DataError(path, f"size {size} bytes is not a multiple of {4 * columns} "
-                              f"({columns} float32 per point: {names}): truncated or not a "
-                              f"{what}")
+    if raw.nbytes != size:  # changed since the check
+        raise DataError(path, _length_refusal(raw.nbytes, columns, what, names))
     return raw
+
+
+def _length_refusal(size: int, columns: int, what: str, names: str) -> str:
+    fits = [f"{name} ({n} x {width} bytes)" for name, width in
+            (("float32 (N, 3)", 12), ("float64 (N, 3)", 24), ("float64 (N, 4)", 32),
+             ("float32 (N, 4)", 16), ("float32 (N, 5)", 20))
+            for n in [size // width] if width != 4 * columns and size and size % width == 0]
+    hint = f"; the length fits {fits[0]}" if fits else ""
+    return (f"size {size} bytes is not a multiple of {4 * columns} ({columns} float32 per "
+            f"point: {names}): truncated or not a {what}{hint}")
+
+
+def read_sweep(path, columns: int, what: str, names: str, strength: int | None = 3
+               ) -> np.ndarray:
+    """A headerless float32 point file as ``(N, columns)`` float32, checked by
+    :func:`seqshape.limits.check_sweep` (non-finite and impossible points dropped with a
+    warning; a file of another layout refused, naming the layout its length fits)."""
+    raw = read_float32(path, columns, what, names)
+    points = raw.reshape(-1, columns)
+    return limits.check_sweep(points, path, what, names, strength, file_bytes=raw.nbytes)
 
 
 def drop_nonfinite_points(points: np.ndarray, path) -> np.ndarray:

@@ -34,7 +34,8 @@ from typing import IO, Any
 
 import numpy as np
 
-from seqshape._io import atomic_save_npz
+import seqshape.limits as limits
+from seqshape._io import atomic_save_npz, open_regular
 from seqshape.errors import DataError
 from seqshape.geometry import canonical_to_sensor
 
@@ -44,9 +45,9 @@ _OPTIONAL = ("complete", "version")
 #: Largest coordinate (m) of a point, pose or complete shape, and largest box side, a track
 #: file may hold: sensor-frame data of a vehicle lies within a few hundred metres, so a larger
 #: value is a unit or frame mistake or a corrupt file.
-MAX_COORD = 1.0e4
+MAX_COORD = limits.MAX_COORD
 #: Largest array (bytes) a track file may declare (a track holds a few MB).
-MAX_ARRAY_BYTES = 1 << 31
+MAX_ARRAY_BYTES = limits.MAX_ARRAY_BYTES
 _CHUNK = 1 << 18  # bytes per read of an array's data (as numpy.load reads)
 _NUMERIC = "fiu"  # dtype kinds taken as numbers: float, signed and unsigned integer
 
@@ -289,7 +290,7 @@ def _read_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     are not read); a :class:`DataError` for anything but a sound archive of plain arrays."""
     out: dict[str, np.ndarray] = {}
     try:
-        with zipfile.ZipFile(path) as zf:
+        with open_regular(path, "track file", "track") as fh, zipfile.ZipFile(fh) as zf:
             for info in zf.infolist():
                 key = info.filename[:-4] if info.filename.endswith(".npy") else None
                 if key not in keys:

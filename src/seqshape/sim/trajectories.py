@@ -40,6 +40,8 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import ndtr
 
+import seqshape.limits as limits
+from seqshape._io import read_text
 from seqshape.errors import ConfigError, DataError
 from seqshape.sim.kinematics import (  # noqa: F401  (re-exported: their former home)
     MAX_STEER,
@@ -187,17 +189,15 @@ def read_trajectory_csv(path: str | Path) -> Trajectory:
 
     Columns may come in any order (extra columns are ignored); units are seconds, metres and
     radians; positions are the bounding-box centre in the sensor frame. Each row becomes one
-    LiDAR frame. Raises :class:`DataError` naming the file (and line) for a missing file or
-    column, a malformed or non-finite number, or times that do not strictly increase.
+    LiDAR frame. Raises :class:`DataError` naming the file (and line) for a missing,
+    non-regular (a FIFO, a folder) or over-long file, a missing or repeated column, a field
+    over ``limits.MAX_CSV_FIELD`` characters or another CSV error, a malformed or non-finite
+    number, a position beyond ``limits.MAX_RANGE`` from the sensor, a heading beyond
+    ``limits.MAX_UNWRAPPED_ANGLE`` rad, or times that do not strictly increase.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (FileNotFoundError, IsADirectoryError):
-        raise DataError(path, "trajectory file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(path, f"unreadable trajectory file ({exc})") from None
-    rows = list(csv.reader(text.splitlines()))
+    text = read_text(path, "trajectory file", encoding="utf-8-sig")
+    rows = _csv_rows(text, path)
     if not rows or not any(c.strip() for c in rows[0]):
         raise DataError(path, "empty file: expected a header with columns t,x,y,yaw", line=1)
     header = [c.strip().lower() for c in rows[0]]
@@ -205,6 +205,10 @@ def read_trajectory_csv(path: str | Path) -> Trajectory:
     if missing:
         raise DataError(path, f"missing column(s) {missing} in header {rows[0]} "
                               f"(need {list(_COLUMNS)})", line=1)
+    twice = sorted({c for c in header if c and header.count(c) > 1})
+    if twice:
+        raise DataError(path, f"column(s) {twice} appear twice in the header: which one is "
+                              "meant?", line=1)
     cols = [header.index(c) for c in _COLUMNS]
     values = []
     for lineno, row in enumerate(rows[1:], start=2):
@@ -215,11 +219,11 @@ def read_trajectory_csv(path: str | Path) -> Trajectory:
         try:
             vals = [float(row[c]) for c in cols]
         except ValueError:
-            raise DataError(path, f"not a number in {[row[c] for c in cols]}",
+            raise DataError(path, f"not a number in {[row[c][:40] for c in cols]}",
                             line=lineno) from None
-        bad = [n for n, v in zip(_COLUMNS, vals, strict=False) if not math.isfinite(v)]
-        if bad:
-            raise DataError(path, f"non-finite value in column(s) {bad}", line=lineno)
+        problem = _row_problem(vals)
+        if problem:
+            raise DataError(path, problem, line=lineno)
         if values and vals[0] <= values[-1][1][0]:
             raise DataError(path, f"time {vals[0]} does not increase (previous row: "
                                   f"{values[-1][1][0]})", line=lineno)
@@ -229,3 +233,34 @@ def read_trajectory_csv(path: str | Path) -> Trajectory:
     a = np.array([v for _, v in values])
     return Trajectory(a[:, 0], a[:, 1], a[:, 2], (a[:, 3] + np.pi) % (2 * np.pi) - np.pi,
                       "csv", str(path))
+
+
+def _csv_rows(text: str, path: Path) -> list[list[str]]:
+    """The CSV rows of ``text``; a CSV error (a field over ``limits.MAX_CSV_FIELD``
+    characters, a NUL) is a :class:`DataError` naming the file and line."""
+    lines = text.splitlines()
+    reader = csv.reader(lines)
+    rows = []
+    try:
+        for row in reader:
+            rows.append(row)
+    except csv.Error as exc:
+        raise DataError(path, f"not a readable CSV row ({exc}; fields are limited to "
+                              f"{limits.MAX_CSV_FIELD} characters)",
+                        line=reader.line_num) from None
+    return rows
+
+
+def _row_problem(vals: list[float]) -> str | None:
+    """Why a row ``(t, x, y, yaw)`` cannot be a vehicle's pose, or None."""
+    bad = [n for n, v in zip(_COLUMNS, vals, strict=False) if not math.isfinite(v)]
+    if bad:
+        return f"non-finite value in column(s) {bad}"
+    t, x, y, yaw = vals
+    if math.hypot(x, y) > limits.MAX_RANGE:
+        return (f"position ({x:g}, {y:g}) m is more than {limits.MAX_RANGE:g} m from the "
+                "sensor: positions are in the sensor frame (not map coordinates), in metres")
+    if abs(yaw) > limits.MAX_UNWRAPPED_ANGLE:
+        return (f"yaw {yaw:g} is beyond {limits.MAX_UNWRAPPED_ANGLE:g} rad: headings are in "
+                "radians")
+    return None
