@@ -2,7 +2,7 @@
 the rotation error into 180-degree flips and the rest, and split the tracks into parked and
 moving vehicles, also by range from the sensor, at their first frame and by track length
 against the training window (docs/results.md, Table I notes); list the tracks that carry the
-flips (docs/model.md, "What the remaining flips are"), and compare how far away and how densely
+flips (docs/history/model.md, "What the remaining flips are"), and compare how far away and how densely
 the tracks that reach 17 detections are seen at their first detection and from the 17th on
 (docs/results.md, Round 13: the detections ratio on the realistic set); with the evaluation's
 ``metrics.json`` beside the CSV, the sequential model's gains over the baseline above the

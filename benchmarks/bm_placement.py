@@ -1,6 +1,6 @@
 """A geometric placement step after the network: does "contain the observed points" help?
 
-The shipped networks put real cars 15-20 cm too far from the sensor (docs/results.md, "Why real
+The shipped networks put real cars 15-20 cm too far from the sensor (docs/history/results.md, "Why real
 cars are placed too far from the sensor"): on the Argoverse 2 log the front of the estimated
 shape of a car seen nose-on lies 10-27 cm behind the car's own front points. The step measured
 here moves each estimate (bird's eye, in its own box frame, per axis) by the least amount that

@@ -4,7 +4,7 @@ that travels less than ``min_travel``.
 
 * ``line always``: the whole-track robust line (the rule before 2026-12-03);
 * ``line if it follows``: the line only where it follows the local fit within the
-  estimates' noise (docs/model.md "Stop and go");
+  estimates' noise (docs/history/model.md "Stop and go");
 * ``+ constant if parked``: that, and a line whose travel is within noise replaced by the
   robust constant (the shipped rule);
 * ``local fit``: never the whole-track fit.
@@ -18,7 +18,7 @@ mean and 95th-percentile centre error in the plane, over all frames of the track
 concerns (travel under ``min_travel``; other tracks are smoothed the same under every rule),
 and the number of those tracks where the line was refused. A second table gives the heading
 error of the synthetic sets' moving tracks (``--centre-noise`` metres, ``--yaw-noise`` degrees)
-with the motion direction alone, with the sideslip correction (docs/model.md, "Sideslip"), and
+with the motion direction alone, with the sideslip correction (docs/history/model.md, "Sideslip"), and
 with the estimates blended in where the motion direction is the less certain (shipped).
 
 Run: ``python benchmarks/bm_smoother.py --kitti ../shared/realdata/kitti-tracking/training

@@ -299,7 +299,7 @@ BOX_FITS_M = 0.15
 #: Edges (m) of the finer "face_gap" breakdown: at most 5 cm (the box holds its points, or they
 #: stand out of it), 5-15, 15-30 and over 30 cm. On the Argoverse 2 log every method's radial
 #: error follows the gap:
-#: (docs/results.md, "Fusion above the sampling floors; the encoder in int8 (2026-12-04, session 21)")
+#: (docs/history/results.md, "Fusion above the sampling floors; the encoder in int8 (2026-12-04, session 21)")
 GAP_EDGES_M = (0.05, 0.15, 0.30)
 
 

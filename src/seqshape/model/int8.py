@@ -9,7 +9,7 @@ layers of an ONNX graph into ONNX Runtime's ``MatMulIntegerToFloat`` (its fused 
   quantised at run time with a scale that depends on **one track's values only**. ONNX
   Runtime's own dynamic quantisation (``quantize_dynamic``) takes one scale over the whole
   input tensor, i.e. over every track of the pass, so that a track's estimate moved with the
-  other tracks it was batched with (by up to 5 cm on a shape point; docs/model.md, "Sixth
+  other tracks it was batched with (by up to 5 cm on a shape point; docs/history/model.md, "Sixth
   round: int8 per track"). Here:
 
   - a row of a product is one track (the decoders, the recurrent layers: inputs ``(B, K)``):
@@ -45,7 +45,7 @@ WEIGHT_LEVELS = 127
 #: (ONNX Runtime's documentation of its quantisation, "saturation"); with 8-bit inputs the
 #: results would then depend on the CPU. Measured: as close to float32 as 8-bit inputs for the
 #: sequential model, 1.3x the baseline's deviations; 7-bit weights instead doubled them
-#: (docs/model.md, "Sixth round: int8 per track").
+#: (docs/history/model.md, "Sixth round: int8 per track").
 POS_LEVELS, SIGNED_LEVELS, ZP = 127, 63, 64
 
 

@@ -183,7 +183,7 @@ def estimate_track(estimator, points: Sequence[np.ndarray], timestamps=None, siz
 #: The keys of a track of :func:`estimate_tracks` (the arguments of :func:`estimate_track`).
 TRACK_KEYS = ("points", "timestamps", "size", "cls", "ego_poses", "track_id")
 #: Padded frames (tracks x longest track) of one batched pass of :func:`estimate_tracks`.
-#: Measured (docs/model.md, "Inference backends (issue 17)"): one track's pass is already a
+#: Measured (docs/history/model.md, "Inference backends (issue 17)"): one track's pass is already a
 #: batch of its frames, and larger passes were slower per frame (the encoder's per-point
 #: features of more frames leave the caches: 512 frames cost 1.2-1.3x the CPU time of one
 #: pass per track), so only short tracks share a pass.

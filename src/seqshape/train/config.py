@@ -148,7 +148,7 @@ class TrainConfig:
 
 
 TRAIN_PRESETS: dict[str, TrainConfig] = {
-    # the step counts are upper bounds (seconds per step: docs/model.md, "Measurements"), pair
+    # the step counts are upper bounds (seconds per step: docs/history/model.md, "Measurements"), pair
     # with --time-budget-min to fit a wall-clock slot.
     "small": TrainConfig(),
     "paper": TrainConfig(model_preset="paper", batch_size=16, window=12,
