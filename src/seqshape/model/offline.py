@@ -73,14 +73,19 @@ from seqshape.model.heading import (
     wrap_angle,
 )
 from seqshape.model.smooth import (
+    MAX_GAP,
     SHAPE_DECAY,
     CausalSmoother,
     average_shapes,
     check_decay,
     check_weighting,
+    frame_numbers,
     frame_weights,
+    limit_shift,
     place_shapes,
     smooth_track_poses,
+    track_segments,
+    world_centres,
 )
 
 MODES = ("online", "offline")
@@ -319,21 +324,26 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
     if "bidirectional" in (cfg.shape, cfg.pose):
         passes["bidirectional"] = _bidirectional(p.frames, first, p.passes["backward"])
     poses = passes[cfg.pose]["pose"].copy()
+    # a hole longer than MAX_GAP or a jump no vehicle makes splits the track into segments
+    # that no smoothing, shape average or heading vote crosses
+    segments = track_segments(p.times, p.counts > 0, world_centres(first["pose"], p.egos))
     if cfg.smooth:
         poses = _smooth(poses, frame_weights(p.counts, cfg.full_points, cfg.ramp), p.egos,
-                        p.times)
+                        p.times, segments)
     if cfg.shape == "final":
         complete = np.broadcast_to(first["complete"][last], first["complete"].shape)
         own = np.broadcast_to(first["pose"][last], poses.shape)
     elif cfg.shape == "average":  # the first pass's poses are the decoder's (no flip yet)
         complete = average_shapes(first["complete"], first["pose"], frame_weights(p.counts),
-                                  cfg.shape_decay, causal=False)
+                                  cfg.shape_decay, causal=False,
+                                  frames=frame_numbers(p.times, len(p.counts)),
+                                  segments=segments)
         own = first["pose"]
     else:
         complete, own = passes[cfg.shape]["complete"], passes[cfg.shape]["pose"]
     complete = place_shapes(complete, own, poses)
-    flips = (consistent_flips(poses, p.egos, p.counts > 0, estimator.heading, cfg.vote_decay)
-             if cfg.heading else None)
+    flips = (consistent_flips(poses, p.egos, p.counts > 0, estimator.heading, cfg.vote_decay,
+                              segments) if cfg.heading else None)
     return _finish(estimator, p, complete, poses, flips)
 
 
@@ -370,12 +380,16 @@ def _bidirectional(frames: list[np.ndarray], first: dict, back: dict) -> dict:
     return {"pose": pose, "complete": place_shapes(complete, own, pose)}
 
 
-def _smooth(poses: np.ndarray, weights: np.ndarray, egos, times: np.ndarray | None
-            ) -> np.ndarray:
-    """:func:`seqshape.model.smooth.smooth_track_poses` of the poses over the frame index
-    (its window counts frames) with the frames' ``weights`` (0: not fitted), at the frame
-    rate of the timestamps (10 Hz without them); in the fixed frame of the ego poses when
-    every frame has one."""
+def _smooth(poses: np.ndarray, weights: np.ndarray, egos, times: np.ndarray | None,
+            segments: np.ndarray) -> np.ndarray:
+    """:func:`seqshape.model.smooth.smooth_track_poses` of the poses of each segment on its
+    own, over the frame numbers of the timestamps (:func:`~seqshape.model.smooth.
+    frame_numbers`: the window counts frames, holes included), with the frames' ``weights``
+    (0: not fitted), at the frame rate of the timestamps (10 Hz without them); in the fixed
+    frame of the ego poses when every frame has one. A frame with points whose centre the fit
+    would move more than ``MAX_SHIFT`` keeps its estimate
+    (:func:`~seqshape.model.smooth.limit_shift`), as does a frame without points more than
+    ``MAX_GAP`` seconds from its segment's detections (nothing is carried far)."""
     rate = 10.0
     if times is not None and len(times) > 1:
         step = float(np.median(np.diff(times)))
@@ -383,8 +397,26 @@ def _smooth(poses: np.ndarray, weights: np.ndarray, egos, times: np.ndarray | No
     ego = None
     if egos is not None and all(e is not None for e in egos):
         ego = np.stack(egos)
-    return smooth_track_poses(poses, np.arange(len(poses), dtype=np.float64), ego,
-                              rate_hz=rate, weights=weights)
+    frames = frame_numbers(times, len(poses))
+    out = poses.copy()
+    for s in np.unique(segments):
+        idx = np.flatnonzero(segments == s)
+        out[idx] = smooth_track_poses(poses[idx], frames[idx],
+                                      None if ego is None else ego[idx], rate_hz=rate,
+                                      weights=weights[idx])
+    valid = weights > 0
+    out = limit_shift(out, poses, valid)
+    if times is not None and valid.any():  # stale frames far from any detection
+        seconds = np.asarray(times, dtype=np.float64)
+        for s in np.unique(segments):
+            idx = np.flatnonzero(segments == s)
+            hits = seconds[idx[valid[idx]]]
+            if len(hits) == 0:
+                out[idx] = poses[idx]
+                continue
+            far = np.min(np.abs(seconds[idx, None] - hits[None, :]), axis=1) > MAX_GAP
+            out[idx[far]] = poses[idx[far]]
+    return out
 
 
 def _frames(estimator, points: Sequence[np.ndarray], track_id: str
@@ -577,7 +609,8 @@ def _finish(estimator, p: _Track, complete: np.ndarray, poses: np.ndarray,
 
 
 def consistent_flips(poses: np.ndarray, ego_poses: Sequence | None, has_points: np.ndarray,
-                     cfg: HeadingConfig | None = None, vote_decay: float = 0.95) -> np.ndarray:
+                     cfg: HeadingConfig | None = None, vote_decay: float = 0.95,
+                     segments: np.ndarray | None = None) -> np.ndarray:
     """Which frames' yaws to turn by pi so the heading is consistent along the whole track.
 
     In the fixed frame of ``ego_poses`` (per frame (4, 4) sensor -> fixed, or None; with
@@ -597,6 +630,8 @@ def consistent_flips(poses: np.ndarray, ego_poses: Sequence | None, has_points: 
         cfg: motion and vote options (:class:`~seqshape.model.heading.HeadingConfig`;
             ``motion=False`` leaves only the vote).
         vote_decay: temporal weight of the vote, in (0, 1].
+        segments: (T,) segment numbers (:func:`~seqshape.model.smooth.track_segments`), or
+            None (one): each segment is decided on its own.
 
     Returns:
         (T,) bool.
@@ -604,6 +639,15 @@ def consistent_flips(poses: np.ndarray, ego_poses: Sequence | None, has_points: 
     cfg = cfg or HeadingConfig()
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
     n = len(poses)
+    if segments is not None and len(np.unique(segments)) > 1:
+        flips = np.zeros(n, dtype=bool)
+        has_points = np.asarray(has_points, dtype=bool)
+        for s in np.unique(segments):
+            idx = np.flatnonzero(np.asarray(segments) == s)
+            flips[idx] = consistent_flips(
+                poses[idx], None if ego_poses is None else [ego_poses[i] for i in idx],
+                has_points[idx], cfg, vote_decay)
+        return flips
     flips = np.zeros(n, dtype=bool)
     yaw, centre, known = _fixed_frame(poses, ego_poses, cfg.static_sensor)
     if known is None:

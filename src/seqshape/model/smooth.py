@@ -25,6 +25,15 @@ by 180 degrees), but a vehicle moves smoothly in the world. :func:`smooth_track_
    flip does not count against it), turned to the side most estimates point to;
 4. maps the smoothed poses back into each frame's sensor frame.
 
+A track as a tracker delivers it may have holes: frames are numbered from their timestamps
+(:func:`frame_numbers`: a frame 0.5 s after the last is five frames on, not one), and a gap
+longer than ``MAX_GAP`` seconds between two detections, or a jump of the estimated centre
+faster than a vehicle moves (``MAX_SPEED`` plus ``JUMP_MARGIN``: another vehicle under the
+same id), starts a new *segment* (:func:`track_segments`) that is smoothed on its own: no
+fit, heading vote or shape average crosses it. A smoothed centre more than ``MAX_SHIFT``
+metres from the frame's own estimate is not trusted (:func:`limit_shift`: the frame keeps its
+estimate), so whatever a tracker delivers, the smoothers never move an estimate far.
+
 Without ego poses the sensor's own motion is unknown, so the motion direction in the sensor
 frame says nothing about the heading: the positions are still fitted (relative motion is
 smooth too) and the heading of a track that moves relative to the sensor is, in each frame,
@@ -54,7 +63,7 @@ def _local_fit(t: np.ndarray, y: np.ndarray, window: float, iterations: int,
                prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Robust local polynomial (degree ``max_deg``) fit of ``y (T, D)`` over times ``t (T,)``,
     evaluated at ``query (Q,)`` (default ``t``): (values, slopes), each ``(Q, D)``. A query
-    with no sample within ``window`` uses the nearest samples' window. ``prior (T,)``: the
+    with at most one sample within ``window`` uses the nearest sample's window. ``prior (T,)``: the
     samples' weights, multiplied into the robust (Tukey) weights (None: equal).
 
     All queries are fitted at once: each query's window is padded to the longest with rows
@@ -88,7 +97,9 @@ _CELLS = 4_000_000  #: padded window cells per batch of queries in _local_fit
 def _local_fit_batch(t, y, window, iterations, scale, max_deg, query, prior=None):
     offset = np.abs(t[None, :] - query[:, None])  # (Q, T)
     inside = offset <= window
-    lonely = ~inside.any(axis=1)
+    # a query with at most one sample in its window (a frame without points past a track's
+    # last detection) takes the window of its nearest sample: one sample is no motion
+    lonely = inside.sum(axis=1) < 2
     if lonely.any():
         near = t[np.argmin(offset[lonely], axis=1)]
         inside[lonely] = np.abs(t[None, :] - near[:, None]) <= window
@@ -277,6 +288,98 @@ def check_weighting(owner: str, full_points, ramp) -> None:
                               f"{value!r}")
 
 
+#: Longest time (s) between two detections of a track that the smoothers bridge: a longer gap
+#: (a track lost and found again) starts a new segment (:func:`track_segments`). A vehicle can
+#: turn, stop or be another vehicle after a few seconds; within one second a 10 Hz track is
+#: at most ten frames apart, which the local fits span.
+MAX_GAP = 1.0
+#: Fastest (m/s) an estimated centre may move between two detections in the fixed frame before
+#: :func:`track_segments` calls it another vehicle (an identity switch of the tracker).
+MAX_SPEED = 40.0
+#: Metres on top of ``MAX_SPEED * dt`` for the two estimates' own errors (:func:`track_segments`).
+JUMP_MARGIN = 2.5
+#: Largest planar distance (m) a smoother may move a frame's estimated centre
+#: (:func:`limit_shift`); the smoothers' corrections are tens of centimetres.
+MAX_SHIFT = 1.5
+
+
+def frame_numbers(times, n: int) -> np.ndarray:
+    """``(n,)`` whole frame numbers (float) of a track's frames from their ``times`` (s): the
+    time since the first frame in periods of the track's median step, rounded, and at least
+    one more than the previous frame's; ``0..n-1`` without times (or with no step > 0).
+
+    >>> frame_numbers([0.0, 0.1, 0.2, 0.7, 0.8], 5).tolist()
+    [0.0, 1.0, 2.0, 7.0, 8.0]
+    """
+    if times is None:
+        return np.arange(n, dtype=np.float64)
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    if len(t) != n or len(steps) == 0 or not np.all(np.isfinite(t)):
+        return np.arange(n, dtype=np.float64)
+    f = np.round((t - t[0]) / float(np.median(steps)))
+    return np.maximum.accumulate(f - np.arange(n)) + np.arange(n)  # strictly increasing
+
+
+def track_segments(times, valid, centres=None, max_gap: float = MAX_GAP,
+                   max_speed: float = MAX_SPEED, margin: float = JUMP_MARGIN,
+                   period: float = 0.1) -> np.ndarray:
+    """``(T,)`` segment number of each frame of a track: a detection (a ``valid`` frame) more
+    than ``max_gap`` seconds after the previous one, or whose estimated planar centre
+    (``centres (T, 2)`` in a fixed frame, or None: no jump test) is more than ``max_speed *
+    dt + margin`` metres from the previous detection's, starts a new segment; a frame without
+    points belongs to the segment of the detection before it. ``times (T,)`` in seconds, or
+    None: one ``period`` per frame.
+
+    >>> track_segments([0.0, 0.1, 0.2, 5.0, 5.1], [True] * 5).tolist()
+    [0, 0, 0, 1, 1]
+    """
+    valid = np.asarray(valid, dtype=bool).reshape(-1)
+    n = len(valid)
+    t = np.arange(n) * period if times is None else np.asarray(times, np.float64).reshape(-1)
+    seg = np.zeros(n, dtype=np.int64)
+    last, current = None, 0
+    for i in range(n):
+        if valid[i] and last is not None:
+            dt = float(t[i] - t[last])
+            jump = centres is not None and float(np.linalg.norm(
+                np.asarray(centres[i][:2]) - np.asarray(centres[last][:2]))) \
+                > max_speed * max(dt, 0.0) + margin
+            if dt > max_gap or jump:
+                current += 1
+        if valid[i]:
+            last = i
+        seg[i] = current
+    return seg
+
+
+def limit_shift(smoothed: np.ndarray, poses: np.ndarray, valid=None,
+                max_shift: float = MAX_SHIFT) -> np.ndarray:
+    """``smoothed (T, 4)`` with every frame (of the ``valid`` ones: frames with points; None:
+    all) whose planar centre moved more than ``max_shift`` metres from its estimate in
+    ``poses (T, 4)`` put back to that estimate (a fit pulled by another vehicle never moves an
+    estimate far). A frame without points has a stale estimate, which the fit's value at its
+    time rightly leaves behind; how far it is carried is bounded by ``MAX_GAP``."""
+    out = np.array(smoothed, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    far = np.linalg.norm(out[:, :2] - poses[:, :2], axis=1) > max_shift
+    if valid is not None:
+        far &= np.asarray(valid, dtype=bool).reshape(-1)
+    out[far] = poses[far]
+    return out
+
+
+def world_centres(poses: np.ndarray, egos) -> np.ndarray | None:
+    """``(T, 2)`` planar centres of ``poses (T, 4)`` in the fixed frame of ``egos`` (per frame
+    a (4, 4) sensor -> fixed matrix); None unless every frame has one."""
+    if egos is None or any(e is None for e in egos):
+        return None
+    e = np.asarray(list(egos), dtype=np.float64).reshape(-1, 4, 4)
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+    return (np.einsum("tij,tj->ti", e[:, :3, :3], poses[:, :3]) + e[:, :3, 3])[:, :2]
+
+
 #: Robust reweighting rounds of the smoother's fits (:func:`smooth_track_poses`).
 ITERATIONS = 3
 #: Residual scale (m) of the smoother's Tukey weights (:func:`smooth_track_poses`).
@@ -436,7 +539,7 @@ def check_decay(owner: str, decay) -> None:
 
 
 def average_shapes(complete, poses, weights, decay: float = SHAPE_DECAY,
-                   causal: bool = True) -> np.ndarray:
+                   causal: bool = True, frames=None, segments=None) -> np.ndarray:
     """A track's complete shapes averaged point by point in their canonical frames.
 
     The decoder's outputs are slots: output k of one frame and of the next are the same part
@@ -452,6 +555,10 @@ def average_shapes(complete, poses, weights, decay: float = SHAPE_DECAY,
             heading flip turned a yaw by pi: the canonical frame must be the decoder's).
         weights: ``(T,)`` non-negative (:func:`frame_weights`; 0: the frame adds nothing).
         decay: per-frame decay in (0, 1]; 1 averages the whole past (or track) evenly.
+        frames: ``(T,)`` frame numbers (:func:`frame_numbers`; None: ``0..T-1``): the decay
+            counts frames, so a frame after a hole weighs the frames before it less.
+        segments: ``(T,)`` segment numbers (:func:`track_segments`; None: one): no average
+            crosses a segment's border.
     Returns ``(T, K, 3)`` float32.
     """
     check_decay("average_shapes", decay)
@@ -465,9 +572,11 @@ def average_shapes(complete, poses, weights, decay: float = SHAPE_DECAY,
     canonical = np.stack([sensor_to_canonical(c.astype(np.float64), p)
                           for c, p in zip(complete, poses, strict=True)]) \
         if len(complete) else np.zeros(complete.shape)
-    total, mass = _decayed_sums(canonical, w, decay)
+    factors = _decay_factors(len(w), decay, frames, segments)
+    total, mass = _decayed_sums(canonical, w, factors)
     if not causal:  # add the frames after t: the reversed run, less frame t counted twice
-        back, back_mass = _decayed_sums(canonical[::-1], w[::-1], decay)
+        back, back_mass = _decayed_sums(canonical[::-1], w[::-1],
+                                        np.r_[0.0, factors[::-1][:-1]])
         total = total + back[::-1] - w[:, None, None] * canonical
         mass = mass + back_mass[::-1] - w
     out = np.array(complete, dtype=np.float32)
@@ -476,13 +585,26 @@ def average_shapes(complete, poses, weights, decay: float = SHAPE_DECAY,
     return out
 
 
-def _decayed_sums(canonical: np.ndarray, w: np.ndarray, decay: float
+def _decay_factors(n: int, decay: float, frames=None, segments=None) -> np.ndarray:
+    """``(n,)`` factor by which frame t's running shape sums keep frame t-1's: ``decay`` to
+    the power of the frames between them, 0 where a new segment starts (factor 0 of frame 0)."""
+    steps = np.diff(frame_numbers(None, n) if frames is None
+                    else np.asarray(frames, dtype=np.float64).reshape(-1))
+    factors = np.r_[0.0, float(decay) ** steps]
+    if segments is not None:
+        segments = np.asarray(segments).reshape(-1)
+        factors[1:][segments[1:] != segments[:-1]] = 0.0
+    return factors
+
+
+def _decayed_sums(canonical: np.ndarray, w: np.ndarray, factors: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame t, ``sum_j<=t decay^(t-j) w_j canonical_j`` and ``sum_j<=t decay^(t-j) w_j``."""
+    """Per frame t, ``sum_j<=t f(j, t) w_j canonical_j`` and ``sum_j<=t f(j, t) w_j``, where
+    ``f(j, t)`` is the product of ``factors`` over ``j+1..t`` (:func:`_decay_factors`)."""
     total, mass = np.zeros_like(canonical), np.zeros(len(w))
     run, run_mass = np.zeros(canonical.shape[1:]), 0.0
     for t in range(len(w)):
-        run, run_mass = _decay_step(run, run_mass, canonical[t], w[t], decay)
+        run, run_mass = _decay_step(run, run_mass, canonical[t], w[t], factors[t])
         total[t], mass[t] = run, run_mass
     return total, mass
 
@@ -528,6 +650,13 @@ class CausalSmoother:
     its frame weight times ``shape_decay ** (t - j)``); ``shape_decay=None``: the shape only
     moves rigidly with the smoothed pose.
 
+    Frames are numbered by their times (a frame after a hole of the tracker's is as many frames
+    on as the time says), and a detection more than ``max_gap`` seconds after the previous one,
+    or a jump of the centre faster than a vehicle drives (:func:`track_segments`), starts a new
+    segment: the smoother forgets the track's past (poses and shape average) and lets estimates
+    through until ``min_frames`` new detections; a smoothed centre more than ``MAX_SHIFT`` from
+    the estimate is not trusted (:func:`limit_shift`).
+
     Measured in docs/model.md, "Causal pose smoothing (online)". ``update`` costs one
     :func:`smooth_track_poses` over the history, whose local fits it keeps from frame to frame
     where they can no longer change (only the newest ``window + 1`` frames' are refitted, and
@@ -537,7 +666,8 @@ class CausalSmoother:
     def __init__(self, window: int = CAUSAL_WINDOW, history: int = CAUSAL_HISTORY,
                  min_frames: int = CAUSAL_MIN_FRAMES, keep_front: bool = True,
                  full_points: float | None = FULL_POINTS, ramp: float | None = RAMP,
-                 shape_decay: float | None = SHAPE_DECAY):
+                 shape_decay: float | None = SHAPE_DECAY, max_gap: float = MAX_GAP,
+                 max_speed: float = MAX_SPEED, max_shift: float = MAX_SHIFT):
         for name, value, low in (("window", window, 1), ("history", history, 2),
                                  ("min_frames", min_frames, 1)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) \
@@ -546,25 +676,71 @@ class CausalSmoother:
                                   f"got {value!r}")
         check_weighting("CausalSmoother", full_points, ramp)
         check_decay("CausalSmoother", shape_decay)
+        for name, value in (("max_gap", max_gap), ("max_speed", max_speed),
+                            ("max_shift", max_shift)):
+            if isinstance(value, bool) or not isinstance(
+                    value, int | float | np.integer | np.floating) or not value > 0:
+                raise ConfigError(f"CausalSmoother {name} must be a positive number (inf: "
+                                  f"never), got {value!r}")
         self.window, self.min_frames = int(window), int(min_frames)
         self.keep_front = bool(keep_front)
         self.full_points, self.ramp = full_points, ramp
         self.shape_decay = shape_decay
+        self.history, self.max_gap = int(history), float(max_gap)
+        self.max_speed, self.max_shift = float(max_speed), float(max_shift)
+        self.detections = 0  # the track's detections (the frame weights' ramp counts them)
+        self.segments = 0  # segments started after the first (gaps, jumps)
+        self._last: tuple[float | None, np.ndarray | None] | None = None  # last detection
+        self._steps: deque = deque(maxlen=16)  # the track's first time steps (s)
+        self._start_segment()
+
+    def _start_segment(self) -> None:
+        """Forget the past: a new segment of the track starts with the next frame."""
         # the decayed, weighted sum of the canonical shapes so far and its weight
         self._shape_sum: np.ndarray | None = None
         self._shape_mass = 0.0
-        self._poses: deque = deque(maxlen=int(history))
-        self._valid: deque = deque(maxlen=int(history))
-        self._weights: deque = deque(maxlen=int(history))
-        self._egos: deque = deque(maxlen=int(history))
-        self._times: deque = deque(maxlen=int(history))
-        self.detections = 0
-        self._seen = 0  # frames updated so far: the newest's number is _seen - 1
+        self._poses: deque = deque(maxlen=self.history)
+        self._valid: deque = deque(maxlen=self.history)
+        self._weights: deque = deque(maxlen=self.history)
+        self._egos: deque = deque(maxlen=self.history)
+        self._times: deque = deque(maxlen=self.history)
+        self._frames: deque = deque(maxlen=self.history)  # frame numbers (whole, float)
+        self._dropped = -np.inf  # the newest frame number the history has dropped
+        self._step = 1.0  # decay exponent of the shape sums at this frame (frames since last)
+        self.segment_detections = 0
         # local fits that can no longer change, by frame number: those whose whole window
         # (+-window frames, with a sample) is in the history; with the fixed frame they
         # were made in (True: the ego poses', False: the sensor's)
-        self._fits: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._fits: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._fixed: bool | None = None
+
+    def _advance(self, pose: np.ndarray, has_points: bool, ego, time: float | None,
+                 rate_hz: float) -> float:
+        """This frame's number; starts a new segment first when the frame is a detection too
+        long after the last one or too far from it (:func:`track_segments`' rule)."""
+        centre = pose[:3] if ego is None else ego[:3, :3] @ pose[:3] + ego[:3, 3]
+        if has_points and self._last is not None:
+            last_time, last_centre = self._last
+            known = time is not None and last_time is not None
+            dt = time - last_time if known else None
+            jump = ego is not None and last_centre is not None and float(np.linalg.norm(
+                centre[:2] - last_centre[:2])) > self.max_speed * (
+                    dt if dt is not None else 1.0 / rate_hz) + JUMP_MARGIN
+            if (dt is not None and dt > self.max_gap) or jump:
+                self._start_segment()
+                self.segments += 1
+        if has_points:
+            self._last = (time, None if ego is None else centre)
+        if not self._frames:
+            return 0.0
+        previous = self._times[-1]
+        if time is None or not math.isfinite(previous):
+            return self._frames[-1] + 1.0
+        if time - previous > 0 and len(self._steps) < self._steps.maxlen:
+            self._steps.append(time - previous)  # the track's first steps set its period
+        if not self._steps:
+            return self._frames[-1] + 1.0
+        return self._frames[-1] + max(1.0, round((time - previous) / np.median(self._steps)))
 
     def update(self, pose, has_points: bool, ego=None, time: float | None = None,
                rate_hz: float = 10.0, num_points: int | None = None) -> np.ndarray:
@@ -580,32 +756,43 @@ class CausalSmoother:
             raise ConfigError(f"CausalSmoother.update num_points must be a whole number >= 0 "
                               f"or None, got {num_points!r}")
         pose = np.asarray(pose, dtype=np.float64).reshape(4)
+        ego = None if ego is None else np.asarray(ego, dtype=np.float64)
+        time = None if time is None else float(time)
+        frame = self._advance(pose, bool(has_points), ego, time, rate_hz)
+        self._step = frame - self._frames[-1] if self._frames else 1.0
+        if len(self._frames) == self.history:  # the oldest frame leaves the history
+            self._dropped = self._frames[0]
+        self._frames.append(frame)
         self._poses.append(pose.copy())
         self._valid.append(bool(has_points))
-        self._egos.append(None if ego is None else np.asarray(ego, dtype=np.float64))
-        self._times.append(np.nan if time is None else float(time))
-        self._seen += 1
+        self._egos.append(ego)
+        self._times.append(np.nan if time is None else time)
         self.detections += bool(has_points)
+        self.segment_detections += bool(has_points)
         n = np.inf if num_points is None else float(num_points)
         self._weights.append(float(_weights(np.array([n if has_points else 0.0]),
                                             np.array([self.detections]), self.full_points,
                                             self.ramp)[0]))
-        if self.detections < self.min_frames or not any(self._valid):
+        if self.segment_detections < self.min_frames or not any(self._valid):
             return pose.copy()
         egos = None if any(e is None for e in self._egos) else np.stack(self._egos)
         times = np.asarray(self._times)
         if len(times) > 1 and np.all(np.isfinite(times)):
             step = float(np.median(np.diff(times)))
             rate_hz = 1.0 / step if step > 0 else rate_hz
-        n = len(self._poses)
         if self._fixed is not (egos is not None):  # another frame: no kept fit holds
             self._fits.clear()
             self._fixed = egos is not None
-        out = smooth_track_poses(np.stack(self._poses), np.arange(n, dtype=np.float64), egos,
+        out = smooth_track_poses(np.stack(self._poses), np.asarray(self._frames), egos,
                                  rate_hz=rate_hz, window=self.window,
                                  valid=np.asarray(self._valid),
                                  local_fit=self._local_fit,
                                  weights=np.asarray(self._weights))[-1]
+        if has_points:
+            out = limit_shift(out[None], pose[None], max_shift=self.max_shift)[0]
+        elif time is not None and self._last is not None and self._last[0] is not None \
+                and time - self._last[0] > self.max_gap:
+            return pose.copy()  # a fit is carried no further than MAX_GAP from a detection
         if self.keep_front and abs(wrap_angle(out[3] - pose[3])) > math.pi / 2:
             out[3] = wrap_angle(out[3] + math.pi)  # the front stays the estimate's
         return out
@@ -613,19 +800,20 @@ class CausalSmoother:
     def _local_fit(self, tv: np.ndarray, y: np.ndarray, t: np.ndarray, prior=None
                    ) -> tuple[np.ndarray, np.ndarray]:
         """``_local_fit(tv, y, window, iterations, scale, query=t, prior=prior)`` over the
-        history (``t``: 0..n-1), taking the kept fits of frames whose window has not changed
-        since and keeping the new ones whose window is complete: a fit uses the samples within
-        ``window`` frames (their times relative to its own, exact for whole frame numbers, and
-        their weights, fixed when a frame is added), so it is final once ``window`` newer
-        frames exist, until the history drops a frame of its window."""
-        n, w = len(t), self.window
-        first = self._seen - n  # the number of the history's oldest frame
-        for k in [k for k in self._fits if k - w < first]:
+        history (``t``: its frame numbers), taking the kept fits of frames whose window has not
+        changed since and keeping the new ones whose window is complete: a fit uses the samples
+        within ``window`` frames (their times relative to its own, exact for whole frame
+        numbers, and their weights, fixed when a frame is added), so it is final once a frame
+        ``window`` or more frames newer exists, until the history drops a frame of its window
+        (or a new segment starts)."""
+        w = self.window
+        for k in [k for k in self._fits if k - w <= self._dropped]:
             del self._fits[k]
+        n = len(t)
         pos, vel = np.empty((n, y.shape[1])), np.empty((n, y.shape[1]))
         todo = []
         for i in range(n):
-            kept = self._fits.get(first + i)
+            kept = self._fits.get(float(t[i]))
             if kept is None:
                 todo.append(i)
             else:
@@ -633,11 +821,12 @@ class CausalSmoother:
         if todo:
             pos[todo], vel[todo] = _local_fit(tv, y, w, ITERATIONS, SCALE, query=t[todo],
                                               prior=prior)
-            has = np.zeros(n + 1, int)  # samples (frames with points) before each frame
-            has[1:] = np.cumsum(np.isin(t, tv))
-            for i in todo:
-                if i - w >= 0 and i + w <= n - 1 and has[i + w + 1] > has[i - w]:
-                    self._fits[first + i] = (pos[i].copy(), vel[i].copy())
+            newest = float(t[-1])
+            lo = np.searchsorted(tv, t[todo] - w, side="left")
+            hi = np.searchsorted(tv, t[todo] + w, side="right")
+            for i, a, b in zip(todo, lo, hi, strict=True):
+                if t[i] - w > self._dropped and t[i] + w <= newest and b - a >= 2:
+                    self._fits[float(t[i])] = (pos[i].copy(), vel[i].copy())
         return pos, vel
 
     def update_estimate(self, est, ego=None, time: float | None = None,
@@ -657,7 +846,7 @@ class CausalSmoother:
                 self._shape_sum, self._shape_mass = np.zeros_like(canonical), 0.0
             self._shape_sum, self._shape_mass = _decay_step(
                 self._shape_sum, self._shape_mass, canonical, self._weights[-1],
-                self.shape_decay)
+                self.shape_decay ** self._step)
             if self._shape_mass > 0:  # the average, where the decoder would have placed it
                 est.complete = canonical_to_sensor(self._shape_sum / self._shape_mass,
                                                    own).astype(np.float32)
