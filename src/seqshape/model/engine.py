@@ -31,6 +31,18 @@ Backends (:data:`BACKENDS`), each tested against the PyTorch reference (the mode
   shape points within 6 cm, :data:`INT8_TOLERANCE`); paper-val metrics within 0.5 % of the
   reference.
 
+The placement refiner (:mod:`seqshape.model.placement`) runs inside the same graphs on every
+fast backend (issue 47): :class:`RefinedStepGraph` and :class:`RefinedOneTrackGraph` are the
+step followed by the refiner's first pass (the frame's points in the estimated box frame, the
+refiner's PointNet, the clipped correction applied to the pose and the shape; inputs
+:data:`REFINED_INPUTS`, outputs :data:`REFINED_OUTPUTS`), one pass over all the tracks of a
+point-count group, no per-track Python; ``"onnx-int8"`` also quantises the refiner's last
+per-point layer in the batch graph (:data:`INT8_REFINER_LAYERS`). The further passes of long
+vehicles run on the refiner's own graph (:meth:`OnnxEngine.refiner`). A pass holds at most
+:data:`MAX_PASS_ROWS` encoder rows; one that fails to allocate raises :class:`PassTooLarge`
+(the estimator splits it, or refuses the step with a ``ConfigError``), never the runtime's
+raw error.
+
 ``"auto"`` (:func:`select_backend`) takes the first of :data:`AUTO_ORDER` whose runtime is
 installed and whose outputs match the reference on this machine
 (:func:`seqshape.model.estimator.check_backend`), warning about any it passes over, and the
@@ -60,7 +72,7 @@ from seqshape.geometry import box_surface
 from seqshape.model.graph_cache import cached_graph, cached_verdict
 from seqshape.model.int8 import quantize_onnx
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet, motion_features
-from seqshape.model.transforms import place_points
+from seqshape.model.transforms import place_points, unplace_points
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +105,13 @@ BUCKET_FILL, BUCKET_MIN_ROWS = 0.75, 16
 #: machine (18:23 UTC, 2026-12-02).
 LARGE_PASS_ROWS = 1024
 LARGE_PASS_THREADS = 2
+#: Most encoder rows (tracks x padded points) of one pass of the fast backends
+#: (:meth:`seqshape.model.estimator.Estimator.step` cuts a larger group of tracks into
+#: passes of this size): 256 tracks of 256 points, a few hundred MB of activations with the
+#: ``paper`` preset at most. A step of 10,000 live tracks then runs as about 40 passes instead
+#: of one that asks ONNX Runtime's arena for gigabytes; a pass that still finds too little
+#: memory is split again (:class:`PassTooLarge`). 100 tracks of 300 points are one pass.
+MAX_PASS_ROWS = 1 << 16
 #: Seconds for which :meth:`OnnxEngine.spare` trusts its last count of free cores.
 SPARE_CHECK_PERIOD = 0.1
 #: The layers whose weights ``"onnx-int8"`` quantises (:func:`quantize_onnx`): the shape
@@ -106,6 +125,10 @@ INT8_LAYERS = ("shape_decoder",)
 #: live tracks. Every per-point product of the encoder would add 3 % more and move yaws twice
 #: as far (docs/model.md, "Fifth round: the encoder in int8").
 INT8_STEP_LAYERS = ("shape_decoder", "mlp2_rest")
+#: The refiner's layers ``"onnx-int8"`` quantises in the refined batch graph
+#: (:class:`RefinedStepGraph`): its last per-point layer (57 % of its multiply-adds), in the
+#: encoder's form (one scale per track over all its points).
+INT8_REFINER_LAYERS = ("refiner_rest",)
 #: ONNX opset of the export.
 ONNX_OPSET = 17
 #: Agreement of a fast backend with the reference: shape points (m), pose centre (m), yaw
@@ -211,6 +234,12 @@ class StepGraph(nn.Module):
         return (1.0 - z) * n + z * h
 
     def forward(self, points, lengths, hidden, mean, seen, scale, dts, counts, gap):
+        _, complete, pose, h, mean_out, seen_out, since = self.step(
+            points, lengths, hidden, mean, seen, scale, dts, counts, gap)
+        return complete, pose, h, mean_out, seen_out, since
+
+    def step(self, points, lengths, hidden, mean, seen, scale, dts, counts, gap):
+        """:meth:`forward`'s outputs after the shape in the box frame (:meth:`decode_box`)."""
         n = points.shape[1]
         mask = (torch.arange(n) < lengths.unsqueeze(1)).unsqueeze(-1)  # (B, N, 1)
         count = lengths.clamp(min=1).unsqueeze(-1).to(points.dtype)
@@ -225,8 +254,8 @@ class StepGraph(nn.Module):
             since = torch.where(has, torch.zeros_like(since), since)
         h = torch.where(has.unsqueeze(1), self.fuse(f, m, hidden), hidden)
         mean_out = torch.where(has.unsqueeze(1), frame_mean, mean)
-        complete, pose = self.decode(h, mean_out, scale)
-        return complete, pose, h, mean_out, seen | has, since
+        box, complete, pose = self.decode_box(h, mean_out, scale)
+        return box, complete, pose, h, mean_out, seen | has, since
 
     def normalise(self, points: torch.Tensor, frame_mean: torch.Tensor,
                   scale: torch.Tensor) -> torch.Tensor:
@@ -251,6 +280,13 @@ class StepGraph(nn.Module):
     def decode(self, h: torch.Tensor, mean: torch.Tensor,
                scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(complete (B, K, 3), pose (B, 4)) decoded from the state around ``mean``."""
+        _, complete, pose = self.decode_box(h, mean, scale)
+        return complete, pose
+
+    def decode_box(self, h: torch.Tensor, mean: torch.Tensor, scale: torch.Tensor
+                   ) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
+        """:meth:`decode` after the shape in the pose's box frame before it is placed
+        (``shape_frame="canonical"``; None for a model that decodes in the sensor frame)."""
         hd = self.cfg.hidden
         d = h if self.skip is None else h[:, :hd] + h[:, hd:]
         p = self.pose_decoder(d)  # (B, 5)
@@ -259,8 +295,8 @@ class StepGraph(nn.Module):
         shape = self.shape_decoder(d).reshape(-1, self.cfg.num_complete, 3)
         shape = shape * scale[:, None, None]
         if self.cfg.shape_frame == "sensor":
-            return shape + mean.unsqueeze(1), pose
-        return place_points(shape, pose), pose
+            return None, shape + mean.unsqueeze(1), pose
+        return shape, place_points(shape, pose), pose
 
 
 class OneTrackGraph(StepGraph):
@@ -276,29 +312,41 @@ class OneTrackGraph(StepGraph):
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         """Frame features (1, F) of the demeaned points (1, n, C)."""
-        *first, last = self.mlp1
-        h = x[0]  # (n, C)
-        for layer in first:
-            h = layer(h)
-        xt = torch.addmm(last.bias.unsqueeze(1), last.weight, h.t())  # (C1, n)
-        g = xt.amax(dim=1, keepdim=True)  # (C1, 1)
-        y = self.w2x @ xt + torch.addmm(self.b2.unsqueeze(1), self.w2g, g)  # (C2, n)
-        if self.mlp2_rest is not None:
-            y = torch.relu(y)
-            for layer in self.mlp2_rest:
-                y = (torch.addmm(layer.bias.unsqueeze(1), layer.weight, y)
-                     if isinstance(layer, nn.Linear) else layer(y))
-        return y.amax(dim=1).unsqueeze(0)
+        return one_track_pointnet(x, self.mlp1, self.w2x, self.w2g, self.b2, self.mlp2_rest)
 
     def forward(self, points, hidden, mean, seen, scale, dts, counts, gap):
+        return self.step(points, hidden, mean, seen, scale, dts, counts, gap)[1:]
+
+    def step(self, points, hidden, mean, seen, scale, dts, counts, gap):
+        """:meth:`forward`'s outputs after the shape in the box frame (:meth:`decode_box`)."""
         frame_mean = points.mean(dim=1)  # (1, 3)
         f = self.encode(self.normalise(points, frame_mean, scale))
         m = None
         if self.motion:
             m = motion_features(frame_mean, mean, seen, gap + dts, counts, scale)
         h = self.fuse(f, m, hidden)
-        complete, pose = self.decode(h, frame_mean, scale)
-        return complete, pose, h, frame_mean
+        box, complete, pose = self.decode_box(h, frame_mean, scale)
+        return box, complete, pose, h, frame_mean
+
+
+def one_track_pointnet(x: torch.Tensor, mlp1: nn.Module, wx: torch.Tensor, wg: torch.Tensor,
+                       b: torch.Tensor, rest: nn.Module | None) -> torch.Tensor:
+    """:func:`split_pointnet` of one frame without padding, ``x (1, n, C)`` -> ``(1, F)``,
+    channels first from the last layer of the first MLP on, so that both max-pools reduce
+    the contiguous axis (:class:`OneTrackGraph`)."""
+    *first, last = mlp1
+    h = x[0]  # (n, C)
+    for layer in first:
+        h = layer(h)
+    xt = torch.addmm(last.bias.unsqueeze(1), last.weight, h.t())  # (C1, n)
+    g = xt.amax(dim=1, keepdim=True)  # (C1, 1)
+    y = wx @ xt + torch.addmm(b.unsqueeze(1), wg, g)  # (C2, n)
+    if rest is not None:
+        y = torch.relu(y)
+        for layer in rest:
+            y = (torch.addmm(layer.bias.unsqueeze(1), layer.weight, y)
+                 if isinstance(layer, nn.Linear) else layer(y))
+    return y.amax(dim=1).unsqueeze(0)
 
 
 class RefinerGraph(nn.Module):
@@ -339,6 +387,167 @@ def export_refiner_onnx(net: nn.Module) -> bytes:
     return buf.getvalue()
 
 
+#: The refiner's clips and threshold, the ``limits`` input (float32 (5,)) of the refined
+#: graphs (:class:`RefinedStepGraph`), from its :class:`~seqshape.model.placement.
+#: RefinerConfig` (:func:`refine_limits`): inputs rather than constants, so that a change of
+#: the configuration needs no new graph.
+LIMIT_FIELDS = ("max_shift", "max_turn", "max_resize_length", "max_resize_width", "min_points")
+#: Inputs and outputs of the refined graphs: the step's, then (outputs) the network's own pose
+#: (B, 4), the first pass's correction (B, 6) (the refiner's ``CORRECTION_FIELDS``: the pose's
+#: move in the network pose's box frame, clipped, then the clipped log size ratios; zeros for
+#: a row left alone) and the network shape's extents (B, 3) the refiner read.
+REFINED_INPUTS = (*GRAPH_INPUTS, "limits")
+REFINED_OUTPUTS = (*GRAPH_OUTPUTS, "pose_net", "correction", "extents")
+REFINED_ONE_INPUTS = (*ONE_INPUTS, "limits")
+REFINED_ONE_OUTPUTS = (*ONE_OUTPUTS, "pose_net", "correction", "extents")
+
+
+def refine_limits(config) -> np.ndarray:
+    """The ``limits`` input (:data:`LIMIT_FIELDS`) of a
+    :class:`~seqshape.model.placement.RefinerConfig`: a size limit of 0 turns that size
+    correction off (``size`` off, or ``size_width`` off for the width)."""
+    resize = float(config.max_resize) if config.size else 0.0
+    return np.array([config.max_shift, config.max_turn, resize,
+                     resize if config.size_width else 0.0, max(int(config.min_points), 1)],
+                    np.float32)
+
+
+class _Refined:
+    """The first pass of the placement refiner appended to a step graph (the mixin of
+    :class:`RefinedStepGraph` and :class:`RefinedOneTrackGraph`): the arithmetic of
+    :meth:`~seqshape.model.placement.PlacementRefiner.refine`'s first pass and of
+    :func:`~seqshape.model.placement.apply_corrections`, in float32 on the graph's tensors
+    (the reference runs them in numpy float64 on the network's float32 outputs; the results
+    differ by float32 rounding, a few micrometres).
+
+    * extents: numpy's linear 1st and 99th percentiles of the shape in the box frame
+      (:func:`~seqshape.model.placement.percentiles_1_99`) from two ``TopK`` of a dozen
+      values; the shape in the box frame is the decoder's before it is placed (no
+      transform back);
+    * the frame's points in the estimate's box frame over the scale s, and the conditioning
+      vector (``COND_FIELDS``), then the refiner's PointNet (:func:`split_pointnet`, so the
+      padded rows, copies of the frame's, change nothing: a group pads to its longest frame,
+      not to the refiner's 256 points) and head;
+    * the correction clipped by ``limits`` (:data:`LIMIT_FIELDS`), the pose moved, the shape
+      stretched along its box axes and placed with the new pose; a row with fewer than
+      ``min_points`` points keeps the network's estimate bit for bit (correction 0).
+
+    The submodules are named ``refiner_*``: :func:`~seqshape.model.int8.quantize_onnx` picks
+    ``refiner_rest`` (the last per-point layer, 57 % of the refiner's multiply-adds) by that
+    name."""
+
+    def attach_refiner(self, net: nn.Module) -> None:
+        from seqshape.model.placement import SCALE_MAX, SCALE_REF
+
+        self.refiner_mlp1, self.refiner_head = net.mlp1, net.head
+        wx, wg, b = split_first_layer(net.mlp2[0], net.mlp1[-1].out_features)
+        self.register_buffer("refiner_wx", wx)
+        self.register_buffer("refiner_wg", wg)
+        self.register_buffer("refiner_b", b)
+        self.refiner_rest = net.mlp2[2:] if len(net.mlp2) > 1 else None
+        self.size_head = net.head[-1].out_features >= 6
+        self.scale_ref, self.scale_max = SCALE_REF, SCALE_MAX
+        k = self.cfg.num_complete
+        virtual = (k - 1) * (np.array([1.0, 99.0]) / 100)  # as percentiles_1_99
+        below = np.floor(virtual).astype(int)
+        self.pct = (k, [int(v) for v in below], [float(g) for g in virtual - below])
+
+    def extents(self, box: torch.Tensor) -> torch.Tensor:
+        """(B, 3): 99th minus 1st percentile of ``box`` (B, K, 3) along K (numpy's linear
+        interpolation, :func:`~seqshape.model.placement.percentiles_1_99`)."""
+        k, (lo_b, hi_b), (lo_g, hi_g) = self.pct
+        q = box.transpose(1, 2)  # (B, 3, K)
+        if k < 2:
+            return torch.zeros(box.shape[0], 3, dtype=box.dtype)
+        asc = torch.topk(q, min(k, lo_b + 2), dim=2, largest=False, sorted=True).values
+        desc = torch.topk(q, min(k, k - hi_b), dim=2, largest=True, sorted=True).values
+
+        def interp(a, b, t):
+            d = b - a
+            return b - d * (1 - t) if t >= 0.5 else a + d * t
+
+        lo = interp(asc[..., lo_b], asc[..., lo_b + 1], lo_g)
+        hi = interp(desc[..., k - 1 - hi_b], desc[..., k - 2 - hi_b], hi_g)
+        return hi - lo
+
+    def refine(self, points: torch.Tensor, count: torch.Tensor, box: torch.Tensor | None,
+               complete: torch.Tensor, pose: torch.Tensor, limits: torch.Tensor,
+               one_track: bool = False) -> tuple[torch.Tensor, ...]:
+        """``(complete, pose, correction, extents)`` of the refined estimate (class doc);
+        ``count`` (B,) float: the frame's points."""
+        if box is None:  # a model that decodes in the sensor frame
+            box = unplace_points(complete, pose)
+        ext = self.extents(box)  # (B, 3)
+        s = torch.clamp(ext[:, 0] / self.scale_ref, 1.0, self.scale_max)  # (B,)
+        xyz = unplace_points(points, pose) / s[:, None, None]  # (B, N, 3)
+        c, sn = torch.cos(pose[:, 3]), torch.sin(pose[:, 3])
+        ox, oy = -pose[:, 0], -pose[:, 1]
+        sx, sy = c * ox + sn * oy, -sn * ox + c * oy  # the sensor in the box frame
+        rng = torch.sqrt(sx * sx + sy * sy)
+        d = torch.clamp(rng, min=1e-6)
+        cond = torch.stack([ext[:, 0] / s, ext[:, 1] / s, ext[:, 2] / s, sx / d, sy / d,
+                            torch.log1p(rng) / 4.0, torch.log1p(count) / 7.0, s / 4.0], dim=1)
+        pool = one_track_pointnet if one_track else split_pointnet
+        y = pool(xyz, self.refiner_mlp1, self.refiner_wx, self.refiner_wg, self.refiner_b,
+                 self.refiner_rest)
+        out = self.refiner_head(torch.cat([y, cond], dim=1))
+        lim = limits
+        shift = out[:, :3] * s.unsqueeze(1)
+        shift = torch.minimum(torch.maximum(shift, -lim[0]), lim[0])
+        turn = torch.minimum(torch.maximum(out[:, 3:4], -lim[1]), lim[1])
+        if self.size_head:
+            size_lim = lim[2:4].unsqueeze(0)
+            size = torch.minimum(torch.maximum(out[:, 4:6], -size_lim), size_lim)
+        else:
+            size = torch.zeros_like(out[:, :2])
+        has = count >= lim[4]  # (B,)
+        corr = torch.cat([shift, turn, size], dim=1)
+        corr = torch.where(has.unsqueeze(1), corr, torch.zeros_like(corr))
+        new = torch.stack([pose[:, 0] + c * corr[:, 0] - sn * corr[:, 1],
+                           pose[:, 1] + sn * corr[:, 0] + c * corr[:, 1],
+                           pose[:, 2] + corr[:, 2], pose[:, 3] + corr[:, 3]], dim=1)
+        stretch = torch.cat([torch.exp(corr[:, 4:6]), torch.ones_like(corr[:, :1])], dim=1)
+        moved = place_points(box * stretch.unsqueeze(1), new)
+        changed = has & (corr != 0).any(dim=1)
+        complete = torch.where(changed[:, None, None], moved, complete)
+        pose_out = torch.where(changed.unsqueeze(1), new, pose)
+        return complete, pose_out, corr, ext
+
+
+class RefinedStepGraph(_Refined, StepGraph):
+    """:class:`StepGraph` followed by the first pass of the placement refiner (:class:`_Refined`),
+    one graph: ``(REFINED_INPUTS) -> (REFINED_OUTPUTS)``, the refined estimate in place of the
+    network's."""
+
+    def __init__(self, model: ShapePoseNet, net: nn.Module):
+        super().__init__(model)
+        self.attach_refiner(net)
+
+    def forward(self, points, lengths, hidden, mean, seen, scale, dts, counts, gap, limits):
+        box, complete, pose, h, mean_out, seen_out, since = self.step(
+            points, lengths, hidden, mean, seen, scale, dts, counts, gap)
+        complete_r, pose_r, corr, ext = self.refine(points, lengths.to(points.dtype), box,
+                                                    complete, pose, limits)
+        return complete_r, pose_r, h, mean_out, seen_out, since, pose, corr, ext
+
+
+class RefinedOneTrackGraph(_Refined, OneTrackGraph):
+    """:class:`OneTrackGraph` followed by the refiner's first pass: ``(REFINED_ONE_INPUTS) ->
+    (REFINED_ONE_OUTPUTS)``."""
+
+    def __init__(self, model: ShapePoseNet, net: nn.Module):
+        super().__init__(model)
+        self.attach_refiner(net)
+
+    def forward(self, points, hidden, mean, seen, scale, dts, counts, gap, limits):
+        box, complete, pose, h, frame_mean = self.step(points, hidden, mean, seen, scale, dts,
+                                                       counts, gap)
+        count = torch.ones_like(points[:, :, 0]).sum(dim=1)  # (1,): n, traced
+        complete_r, pose_r, corr, ext = self.refine(points, count, box, complete, pose, limits,
+                                                    one_track=True)
+        return complete_r, pose_r, h, frame_mean, pose, corr, ext
+
+
 @dataclass
 class StepInputs:
     """Numpy inputs of one step of the rows a backend computes (see :data:`GRAPH_INPUTS`)."""
@@ -352,16 +561,59 @@ class StepInputs:
     dts: np.ndarray  # (B,) float32, finite and >= 0
     counts: np.ndarray  # (B,) int64
     gap: np.ndarray  # (B,) float32
+    limits: np.ndarray | None = None  # (5,) float32: the refined graphs' (LIMIT_FIELDS)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {name: getattr(self, name) for name in GRAPH_INPUTS}
+
+
+class PassTooLarge(MemoryError):
+    """A pass of an engine found too little memory (ONNX Runtime's failed allocation, or
+    PyTorch's): :meth:`seqshape.model.estimator.Estimator.step` splits the pass, and refuses
+    the step with a :class:`~seqshape.errors.ConfigError` naming its size when one track
+    alone does not fit. ``rows``, ``points``: the pass's tracks and padded points."""
+
+    def __init__(self, rows: int, points: int, detail: str):
+        super().__init__(f"a pass of {rows} tracks x {points} points ran out of memory "
+                         f"({detail})")
+        self.rows, self.points, self.detail = rows, points, detail
+
+
+#: Words of the runtimes' messages for a failed allocation (ONNX Runtime's arena:
+#: "BFCArena::AllocateRawInternal ... Failed to allocate memory"; PyTorch's CPU allocator:
+#: "DefaultCPUAllocator: can't allocate memory").
+_ALLOCATION_WORDS = ("bfcarena", "failed to allocate", "allocate memory", "bad_alloc",
+                     "out of memory")
+
+
+def allocation_failure(exc: BaseException) -> bool:
+    """Whether ``exc`` (raised by a pass) is a runtime's failure to allocate memory."""
+    if isinstance(exc, MemoryError):
+        return True
+    text = str(exc).lower()
+    return any(w in text for w in _ALLOCATION_WORDS)
+
+
+def _guarded(inputs: StepInputs, run: Callable[[], tuple]) -> tuple:
+    """``run()``, an allocation failure turned into :class:`PassTooLarge` (other errors pass
+    through as they are)."""
+    try:
+        return run()
+    except PassTooLarge:
+        raise
+    except Exception as exc:  # ONNX Runtime's Fail / RuntimeException, torch's RuntimeError
+        if not allocation_failure(exc):
+            raise
+        b, n = inputs.points.shape[:2]
+        raise PassTooLarge(b, n, str(exc).strip().splitlines()[0][:300]) from None
 
 
 class TorchGraphEngine:
     """:class:`StepGraph` run by PyTorch in float32 (``"torch-lean"``).
 
     ``threads``: torch's intra-op threads during this engine's steps only (restored after;
-    None: 1)."""
+    None: 1). With a refiner attached (:meth:`set_refiner`), a pass whose inputs carry
+    ``limits`` runs :class:`RefinedStepGraph` instead."""
 
     name = "torch-lean"
     tolerance = TOLERANCE
@@ -369,15 +621,30 @@ class TorchGraphEngine:
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         self.threads = threads or 1
+        self.model = model
         self.graph = StepGraph(model).eval()
         self._refiner: tuple | None = None  # (net, RefinerGraph)
+        self._refined: tuple | None = None  # (net, RefinedStepGraph)
+
+    def set_refiner(self, net: nn.Module) -> None:
+        """The refiner network of the passes with ``limits`` (:class:`RefinedStepGraph`)."""
+        if self._refined is None or self._refined[0] is not net:
+            self._refined = (net, RefinedStepGraph(self.model, net).eval())
 
     def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
-        """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""
+        """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays (:data:`REFINED_OUTPUTS`
+        when ``inputs.limits`` is set)."""
         args = [torch.from_numpy(a) for a in inputs.arrays().values()]
-        with torch.inference_mode(), _torch_threads(self.threads):
-            out = self.graph(*args)
-        return tuple(o.numpy() for o in out)
+        graph = self.graph
+        if inputs.limits is not None:
+            graph = self._refined[1]
+            args.append(torch.from_numpy(inputs.limits))
+
+        def run():
+            with torch.inference_mode(), _torch_threads(self.threads):
+                return graph(*args)
+
+        return tuple(o.numpy() for o in _guarded(inputs, run))
 
     def refiner(self, net: nn.Module) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
         """The forward pass of a placement refiner's network on this engine's torch threads
@@ -393,6 +660,25 @@ class TorchGraphEngine:
         return run
 
 
+class _Sessions:
+    """The sessions of one pair of graphs (batch, one-track): one thread each, and the
+    two-thread ones (:meth:`wide`) created at their first use."""
+
+    def __init__(self, ort, graphs: tuple[bytes, bytes], threads: int | None, more: int):
+        self.ort, self.graphs, self.more = ort, graphs, more
+        self.session = _Session(ort, graphs[0], threads or 1)
+        self.one = _Session(ort, graphs[1], threads or 1)
+        self._wide: list[_Session | None] = [None, None]
+
+    def wide(self, one_track: bool) -> _Session | None:
+        if self.more < 2:
+            return None
+        if self._wide[one_track] is None:
+            self._wide[one_track] = _Session(self.ort, self.graphs[one_track], self.more,
+                                             spin=one_track)
+        return self._wide[one_track]
+
+
 class OnnxEngine:
     """:class:`StepGraph` exported to ONNX and run by ONNX Runtime (``"onnx"``).
 
@@ -405,6 +691,11 @@ class OnnxEngine:
     least :data:`LARGE_PASS_ROWS` encoder rows and for one-track passes; the latter's second
     thread spins during the pass (each of its matrix products is too short to wake a sleeping
     thread for) and stops when the pass ends.
+
+    With a placement refiner attached (:meth:`set_refiner`), the passes whose inputs carry
+    ``limits`` run the refined pair instead (:class:`RefinedStepGraph`,
+    :class:`RefinedOneTrackGraph`: the network and the refiner's first pass in one graph),
+    exported and cached like the plain pair (the cache key holds both networks' weights).
     """
 
     name = "onnx"
@@ -415,26 +706,21 @@ class OnnxEngine:
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None):
         ort = require("onnxruntime", "the ONNX inference backend", "seqshape[fast]")
-        self.threads, self.motion = threads, model.motion
-        batch, one = self.graph_bytes(model), self.one_graph_bytes(model)
-        self.session = _Session(ort, batch, threads or 1)
-        self.one = _Session(ort, one, threads or 1)
+        self.threads, self.motion, self.model = threads, model.motion, model
         self.cores = _usable_cores()
         self.more = min(LARGE_PASS_THREADS, self.cores) if threads is None else 1
-        self._ort, self._graphs = ort, (batch, one)
-        self._wide: list[_Session | None] = [None, None]
+        self._ort = ort
+        self._plain = _Sessions(ort, (self.graph_bytes(model), self.one_graph_bytes(model)),
+                                threads, self.more)
+        self.session, self.one = self._plain.session, self._plain.one
         self._spare_at, self._spare = -np.inf, False
         self._refiner: tuple | None = None  # (net, one-thread session, wide session)
+        self._refined: tuple | None = None  # (net, _Sessions of the refined graphs)
 
     def wide(self, one_track: bool) -> _Session | None:
         """The two-thread session of the batch or the one-track graph (None when ``threads``
         is given or the process has one core), created at its first use."""
-        if self.more < 2:
-            return None
-        if self._wide[one_track] is None:
-            self._wide[one_track] = _Session(self._ort, self._graphs[one_track], self.more,
-                                             spin=one_track)
-        return self._wide[one_track]
+        return self._plain.wide(one_track)
 
     def spare(self) -> bool:
         """Whether a core is free (:func:`spare_cores`, cached :data:`SPARE_CHECK_PERIOD` s)."""
@@ -443,19 +729,36 @@ class OnnxEngine:
             self._spare_at, self._spare = now, spare_cores(self.cores) > 0
         return self._spare
 
-    def graph_bytes(self, model: ShapePoseNet) -> bytes:
+    def graph_bytes(self, model: ShapePoseNet, net: nn.Module | None = None) -> bytes:
         """The ONNX model of :class:`StepGraph` this engine runs (exported, or read from the
-        disk cache of :mod:`seqshape.model.graph_cache`)."""
+        disk cache of :mod:`seqshape.model.graph_cache`); with a refiner's ``net``,
+        :class:`RefinedStepGraph`'s."""
+        if net is not None:
+            return cached_graph(_Pair(model, net), "step+refiner",
+                                lambda: export_onnx(model, refiner=net))
         return cached_graph(model, "step", lambda: export_onnx(model))
 
-    def one_graph_bytes(self, model: ShapePoseNet) -> bytes:
-        """The ONNX model of :class:`OneTrackGraph` this engine runs (likewise cached)."""
+    def one_graph_bytes(self, model: ShapePoseNet, net: nn.Module | None = None) -> bytes:
+        """The ONNX model of :class:`OneTrackGraph` this engine runs (likewise cached; with
+        ``net``, :class:`RefinedOneTrackGraph`'s)."""
+        if net is not None:
+            return cached_graph(_Pair(model, net), "one+refiner",
+                                lambda: export_onnx(model, one_track=True, refiner=net))
         return cached_graph(model, "one", lambda: export_onnx(model, one_track=True))
+
+    def set_refiner(self, net: nn.Module) -> None:
+        """Attach a placement refiner's network: the refined graphs are built (or read from
+        the cache) now, once per network."""
+        if self._refined is None or self._refined[0] is not net:
+            graphs = (self.graph_bytes(self.model, net), self.one_graph_bytes(self.model, net))
+            self._refined = (net, _Sessions(self._ort, graphs, self.threads, self.more))
 
     def refiner(self, net: nn.Module) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
         """The forward pass of a placement refiner's network (``xyz``, ``cond`` -> ``(B, 4)``,
         ``(B, 6)`` with the size head) on ONNX Runtime, with the thread rule of :meth:`run` (two threads for passes of at
-        least :data:`LARGE_PASS_ROWS` points while a core is free). Numpy's own forward would
+        least :data:`LARGE_PASS_ROWS` points while a core is free): the refiner's further
+        passes (long vehicles), and the whole refinement where the refined graphs do not
+        apply. Numpy's own forward would
         run on OpenBLAS's threads, which keep spinning after each product and take the core
         the next network pass counts on (measured: 100 live tracks 650 against 930 updates/s
         with OpenBLAS held to one thread; docs/model.md)."""
@@ -474,31 +777,61 @@ class OnnxEngine:
         return run
 
     def run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
-        """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays."""
+        """The outputs of :data:`GRAPH_OUTPUTS` as numpy arrays (:data:`REFINED_OUTPUTS` when
+        ``inputs.limits`` is set: the refined graphs of :meth:`set_refiner`). A failed
+        allocation raises :class:`PassTooLarge`."""
+        return _guarded(inputs, lambda: self._run(inputs))
+
+    def _run(self, inputs: StepInputs) -> tuple[np.ndarray, ...]:
+        sessions = self._plain if inputs.limits is None else self._refined[1]
         b, n = inputs.points.shape[:2]
         if b == 1 and inputs.lengths[0] == n:  # one track with points, no padding
-            one = self.wide(True) if self.more > 1 and self.spare() else self.one
-            complete, pose, hidden, mean = one.run(inputs)
+            one = sessions.wide(True) if self.more > 1 and self.spare() else sessions.one
+            complete, pose, hidden, mean, *rest = one.run(inputs)
             gap = np.zeros(1, np.float32) if self.motion else inputs.gap
-            return complete, pose, hidden, mean, np.ones(1, bool), gap
+            return complete, pose, hidden, mean, np.ones(1, bool), gap, *rest
         if self.more > 1 and b * n >= LARGE_PASS_ROWS and self.spare():
-            return tuple(self.wide(False).run(inputs))
-        return tuple(self.session.run(inputs))
+            return tuple(sessions.wide(False).run(inputs))
+        return tuple(sessions.session.run(inputs))
+
+
+class _Pair:
+    """A network and its refiner's network as one key of the graph cache
+    (:func:`~seqshape.model.graph_cache.graph_key` reads ``kind``, ``cfg`` and
+    ``state_dict``)."""
+
+    def __init__(self, model: ShapePoseNet, net: nn.Module):
+        self.kind, self.cfg, self._model, self._net = model.kind, model.cfg, model, net
+
+    def state_dict(self) -> dict:
+        out = dict(self._model.state_dict())
+        out.update({f"refiner.{k}": v for k, v in self._net.state_dict().items()})
+        return out
 
 
 class OnnxInt8Engine(OnnxEngine):
     """``"onnx"`` with the weights of the layers :data:`INT8_LAYERS` quantised to int8
-    (``"onnx-int8"``, :func:`quantize_onnx`), built in memory at load time (about 1.5 s: two graphs)."""
+    (``"onnx-int8"``, :func:`quantize_onnx`), built in memory at load time (about 1.5 s: two
+    graphs). With a refiner, the batch graph's refiner layers :data:`INT8_REFINER_LAYERS` too
+    (the one-track graph's refiner stays float32)."""
 
     name = "onnx-int8"
     tolerance = INT8_TOLERANCE
     noise = INT8_NOISE
 
-    def graph_bytes(self, model: ShapePoseNet) -> bytes:
+    def graph_bytes(self, model: ShapePoseNet, net: nn.Module | None = None) -> bytes:
+        if net is not None:
+            layers = INT8_STEP_LAYERS + INT8_REFINER_LAYERS
+            return cached_graph(_Pair(model, net), f"step+refiner-int8:{','.join(layers)}",
+                                lambda: quantize_onnx(export_onnx(model, refiner=net), layers))
         return cached_graph(model, f"step-int8:{','.join(INT8_STEP_LAYERS)}",
                             lambda: quantize_onnx(export_onnx(model), INT8_STEP_LAYERS))
 
-    def one_graph_bytes(self, model: ShapePoseNet) -> bytes:
+    def one_graph_bytes(self, model: ShapePoseNet, net: nn.Module | None = None) -> bytes:
+        if net is not None:
+            return cached_graph(_Pair(model, net), f"one+refiner-int8:{','.join(INT8_LAYERS)}",
+                                lambda: quantize_onnx(export_onnx(model, one_track=True,
+                                                                  refiner=net), INT8_LAYERS))
         return cached_graph(model, f"one-int8:{','.join(INT8_LAYERS)}",
                             lambda: quantize_onnx(export_onnx(model, one_track=True),
                                                   INT8_LAYERS))
@@ -552,18 +885,28 @@ def _session_options(ort, threads: int | None, spin: bool = False):
     return opts
 
 
-def export_onnx(model: ShapePoseNet, one_track: bool = False) -> bytes:
+def export_onnx(model: ShapePoseNet, one_track: bool = False,
+                refiner: nn.Module | None = None) -> bytes:
     """The ONNX model (bytes) of one streaming step of ``model`` (:class:`StepGraph`), with
     dynamic batch and point axes; with ``one_track`` :class:`OneTrackGraph` (batch 1, dynamic
-    point axis). PyTorch's exporter needs the ``onnx`` package."""
+    point axis); with a placement ``refiner``'s network, the refined graphs
+    (:class:`RefinedStepGraph`, :class:`RefinedOneTrackGraph`). PyTorch's exporter needs the
+    ``onnx`` package."""
     require("onnx", "exporting the network to ONNX", "seqshape[fast]")
-    inputs, outputs = (ONE_INPUTS, ONE_OUTPUTS) if one_track else (GRAPH_INPUTS, GRAPH_OUTPUTS)
-    graph = (OneTrackGraph if one_track else StepGraph)(model).eval()
+    if refiner is None:
+        inputs, outputs = (ONE_INPUTS, ONE_OUTPUTS) if one_track else (GRAPH_INPUTS,
+                                                                      GRAPH_OUTPUTS)
+        graph = (OneTrackGraph if one_track else StepGraph)(model).eval()
+    else:
+        inputs, outputs = ((REFINED_ONE_INPUTS, REFINED_ONE_OUTPUTS) if one_track
+                           else (REFINED_INPUTS, REFINED_OUTPUTS))
+        graph = (RefinedOneTrackGraph if one_track else RefinedStepGraph)(model, refiner).eval()
     example = example_inputs(model, batch=1 if one_track else 2, points=5).arrays()
+    example["limits"] = np.array([1.5, 0.35, 0.3, 0.0, 1.0], np.float32)
     if one_track:
         axes = {"points": {1: "points"}}
     else:
-        axes = {name: {0: "batch"} for name in (*inputs, *outputs)}
+        axes = {name: {0: "batch"} for name in (*inputs, *outputs) if name != "limits"}
         axes["points"] = {0: "batch", 1: "points"}
     buf = io.BytesIO()
     with warnings.catch_warnings(), torch.inference_mode():
@@ -715,31 +1058,39 @@ class _torch_threads:
 _AUTO_CACHE: dict[tuple, str] = {}
 
 
-def model_fingerprint(model: ShapePoseNet) -> tuple:
-    """A key of ``model``'s function: kind, configuration and a checksum of its weights."""
+def _weights_crc(module: nn.Module) -> int:
+    """A checksum of a module's weights (names and bytes)."""
     crc = 0
-    for name, t in model.state_dict().items():
+    for name, t in module.state_dict().items():
         crc = zlib.crc32(name.encode(), crc)
         crc = zlib.crc32(t.detach().contiguous().numpy().tobytes(), crc)
-    return model.kind, json.dumps(model.cfg.to_dict(), sort_keys=True), crc
+    return crc
+
+
+def model_fingerprint(model: ShapePoseNet) -> tuple:
+    """A key of ``model``'s function: kind, configuration and a checksum of its weights."""
+    return model.kind, json.dumps(model.cfg.to_dict(), sort_keys=True), _weights_crc(model)
 
 
 def select_backend(model: ShapePoseNet, check: Callable[[str], bool],
-                   order: tuple[str, ...] = AUTO_ORDER) -> str:
+                   order: tuple[str, ...] = AUTO_ORDER, refiner: nn.Module | None = None) -> str:
     """The backend ``"auto"`` picks for ``model``: the first of ``order`` whose runtime is
     installed and for which ``check(name)`` is True, else the reference ``"torch"``. Warns
     (``RuntimeWarning``) when a backend is passed over, saying why; an int8 one whose check
     fails only logs it (float32 is then the exact choice: some weights round worse than
-    others). Cached per process, model (:func:`model_fingerprint`) and ``order``, so the
-    check runs once; and each backend's verdict on disk, per model and machine
-    (:func:`seqshape.model.graph_cache.cached_verdict`), so later processes skip it."""
-    key = (model_fingerprint(model), order)
+    others). Cached per process, model (:func:`model_fingerprint`), placement ``refiner``'s
+    network (the check runs the estimator with it: the refined graphs are checked too) and
+    ``order``, so the check runs once; and each backend's verdict on disk, per model,
+    refiner and machine (:func:`seqshape.model.graph_cache.cached_verdict`), so later
+    processes skip it."""
+    extra = "" if refiner is None else f"+refiner:{_weights_crc(refiner)}"
+    key = (model_fingerprint(model), order, extra)
     if key in _AUTO_CACHE:
         return _AUTO_CACHE[key]
     reasons, quiet, chosen = [], [], "torch"
     for name in order:
         try:
-            ok = cached_verdict(model, name, lambda name=name: check(name))
+            ok = cached_verdict(model, name + extra, lambda name=name: check(name))
         except MissingDependencyError:
             reasons.append(f"{name}: runtime not installed (pip install 'seqshape[fast]')")
             continue

@@ -57,17 +57,20 @@ from seqshape.model.config import ModelConfig
 from seqshape.model.engine import (
     AUTO_ORDERS,
     BACKENDS,
+    MAX_PASS_ROWS,
+    PassTooLarge,
     StepInputs,
     car_stream,
     check_stream,
     length_buckets,
     make_engine,
     pack_frames,
+    refine_limits,
     select_backend,
 )
 from seqshape.model.heading import HeadingConfig, HeadingFilter, wrap_angle
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet
-from seqshape.model.placement import apply_corrections, load_refiner
+from seqshape.model.placement import apply_corrections, delta, load_refiner
 from seqshape.model.smooth import CausalSmoother
 from seqshape.model.weights import (  # noqa: F401 (re-exported: the names' former home)
     KINDS,
@@ -169,9 +172,10 @@ class _TrackState:
     heading: HeadingFilter | None = None
     gap: float = 0.0  # time (s) since the last frame with points (motion inputs)
     last_time: float | None = None  # timestamp (s) of the track's last step, when given
-    # fast backends: the last estimate (complete, pose, scale), returned again for an empty
-    # frame at the same scale (the state does not change, so neither does the estimate)
-    last: tuple[np.ndarray, np.ndarray, float] | None = None
+    # fast backends: the last estimate (complete, pose, scale, refiner), returned again for an
+    # empty frame at the same scale (the state does not change, so neither does the
+    # estimate); refiner: the refiner whose corrections it holds (the refined graphs), or None
+    last: tuple[np.ndarray, np.ndarray, float, Any] | None = None
     correction: np.ndarray | None = None  # the placement refiner's last correction (4,)
     smoother: CausalSmoother | None = None  # smoothing="causal": the track's past estimates
 
@@ -210,7 +214,12 @@ class Estimator:
         refiner: a :class:`~seqshape.model.placement.PlacementRefiner` applied to every
             estimate of a frame with points (the frame's points re-read in the estimated box
             frame; docs/model.md, "Placement refinement"), before the heading step; None: the
-            network's estimate as it is. An attribute: set it after loading too.
+            network's estimate as it is. An attribute: set it after loading too. On the fast
+            backends its first pass runs inside the engine's graphs (:class:`~seqshape.model.
+            engine.RefinedStepGraph`, checked by ``"auto"`` with the network; int8 in
+            ``"onnx-int8"``'s batch graph), unless frames are fed with more points than it
+            reads (``max_points`` above ``RefinerConfig.points``: it then runs after the
+            network, as on ``"torch"``).
         max_points: the most points of a frame fed to the network (a larger frame is cut to a
             seeded random subset of this size); None: the model's ``num_points``, what it was
             trained with. The encoder's work grows with it: 128 for the shipped weights gives
@@ -253,7 +262,8 @@ class Estimator:
         self._buffer = np.zeros(0, np.float32)  # reused input points of the fast backends
         self._states: dict[str, _TrackState] = {}
         self._engine = None
-        self.backend = (select_backend(self.model, self._check, AUTO_ORDERS[backend])
+        self.backend = (select_backend(self.model, self._check, AUTO_ORDERS[backend],
+                                       getattr(refiner, "net", None))
                         if backend in AUTO_ORDERS else backend)
         if self.backend == "torch":
             self._engine = None  # "auto" may have tried engines that did not pass
@@ -436,28 +446,68 @@ class Estimator:
             st.gap = float(out["gap"][i])
         return [c.copy() for c in complete], [p.copy() for p in pose]
 
+    def _fused_refiner(self):
+        """The refiner whose first pass runs inside the engine's graphs (the refined graphs of
+        :class:`~seqshape.model.engine.RefinedStepGraph`), or None: no refiner, the reference
+        backend, no pass configured, or frames fed with more points than the refiner reads
+        (its seeded subset is numpy's; :meth:`_refine` then runs it after the network)."""
+        ref = self.refiner
+        if ref is None or self._engine is None or not hasattr(self._engine, "set_refiner") \
+                or not hasattr(ref, "net") or ref.config.iterations < 1 \
+                or self.max_points > ref.config.points:
+            return None
+        return ref
+
     def _run_engine(self, states: list[_TrackState], frames: list[np.ndarray],
-                    counts: list[int], scale: np.ndarray | None, dts: np.ndarray | None
-                    ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+                    counts: list[int], scale: np.ndarray | None, dts: np.ndarray | None,
+                    refiner=None) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """A fast backend: one pass over the tracks whose estimate can change (a frame with
         points, a new track, a new scale); an empty frame at the same scale returns the
-        track's last estimate (the network would compute the same from the same state)."""
+        track's last estimate (the network would compute the same from the same state).
+
+        With ``refiner`` (:meth:`_fused_refiner`) the passes run the refined graphs and the
+        estimates are the refined ones (:meth:`_finish_refined`). A pass holds at most
+        :data:`~seqshape.model.engine.MAX_PASS_ROWS` encoder rows (tracks x padded points);
+        one that finds too little memory is split in two, and a step in which one track
+        alone does not fit is refused (:class:`ConfigError`). The tracks' states change only
+        once every pass has run."""
         b = len(states)
         scale = np.ones(b, np.float32) if scale is None else scale
+        limits = None
+        if refiner is not None:
+            self._engine.set_refiner(refiner.net)
+            limits = refine_limits(refiner.config)
         rows = []
         for i, st in enumerate(states):
-            if len(frames[i]) or st.last is None or st.last[2] != scale[i]:
+            if len(frames[i]) or st.last is None or st.last[2] != scale[i] \
+                    or st.last[3] is not refiner:
                 rows.append(i)
-            elif dts is not None:  # the state is carried; the time since a detection grows
-                st.gap = float(np.float32(st.gap) + dts[i])
         if rows:  # a pass per group of similar point counts: less padding to encode
-            for group in length_buckets(np.array([len(frames[i]) for i in rows])):
-                self._run_rows([rows[j] for j in group], states, frames, counts, scale, dts)
+            lengths = np.array([len(frames[i]) for i in rows])
+            outs: dict[int, tuple] = {}
+            for group in length_buckets(lengths):
+                for part in _capped(group, int(lengths[group].max()), MAX_PASS_ROWS):
+                    self._run_rows([rows[j] for j in part], states, frames, counts, scale,
+                                   dts, limits, outs, b)
+            if refiner is not None:
+                self._finish_refined(refiner, rows, outs, states, frames)
+            for i in rows:
+                st, out = states[i], outs[i]
+                st.hidden, st.mean, st.seen, st.gap = out[2], out[3], bool(out[4]), float(out[5])
+                st.last = (out[0], out[1], float(scale[i]), refiner)
+        if dts is not None:  # a carried state: the time since a detection grows
+            computed = set(rows)
+            for i, st in enumerate(states):
+                if i not in computed:
+                    st.gap = float(np.float32(st.gap) + dts[i])
         return [states[i].last[0].copy() for i in range(b)], \
             [states[i].last[1].copy() for i in range(b)]
 
     def _run_rows(self, rows: list[int], states: list[_TrackState], frames: list[np.ndarray],
-                  counts: list[int], scale: np.ndarray, dts: np.ndarray | None) -> None:
+                  counts: list[int], scale: np.ndarray, dts: np.ndarray | None,
+                  limits: np.ndarray | None, outs: dict[int, tuple], step_size: int) -> None:
+        """One engine pass over ``rows``; each row's outputs (the engine's, pose as float64)
+        into ``outs``. Split in halves when the pass runs out of memory."""
         sub = [states[i] for i in rows]
         points, self._buffer = pack_frames([frames[i] for i in rows], self._buffer)
         if len(rows) == 1:  # one track (a single-track stream's every step): views, no copies
@@ -471,12 +521,64 @@ class Estimator:
             np.array([st.seen for st in sub], bool), scale[picked],
             np.zeros(len(rows), np.float32) if dts is None else dts[picked],
             np.array([counts[i] for i in rows], np.int64),
-            np.array([st.gap for st in sub], np.float32))
-        complete, pose, hidden, mean, seen, gap = self._engine.run(inputs)
-        pose = pose.astype(np.float64)
-        for j, (i, st) in enumerate(zip(rows, sub, strict=True)):
-            st.hidden, st.mean, st.seen, st.gap = hidden[j], mean[j], bool(seen[j]), float(gap[j])
-            st.last = (complete[j], pose[j], float(scale[i]))
+            np.array([st.gap for st in sub], np.float32), limits)
+        try:
+            out = self._engine.run(inputs)
+        except PassTooLarge as exc:
+            if len(rows) == 1:
+                n = max(len(frames[i]) for i in rows)
+                raise ConfigError(
+                    f"not enough memory for a step of {step_size} tracks: one track's pass "
+                    f"({n} points) failed to allocate ({exc.detail}); free memory or feed "
+                    f"fewer points (max_points)") from None
+            log.info("%s; splitting it in two", exc)
+            half = len(rows) // 2
+            for part in (rows[:half], rows[half:]):
+                self._run_rows(part, states, frames, counts, scale, dts, limits, outs,
+                               step_size)
+            return
+        out = list(out)
+        out[1] = out[1].astype(np.float64)
+        if len(out) > 6:
+            out[6:] = [a.astype(np.float64) for a in out[6:]]
+        for j, i in enumerate(rows):
+            outs[i] = tuple(a[j] for a in out)
+
+    def _finish_refined(self, refiner, rows: list[int], outs: dict[int, tuple],
+                        states: list[_TrackState], frames: list[np.ndarray]) -> None:
+        """The refined graphs' estimates completed as :meth:`_refine` would: the further
+        passes of long vehicles (``RefinerConfig.iterations``, on the engine's refiner
+        session), the last correction of its track carried to a recomputed frame without
+        points (a new scale), and each refined track's correction kept. ``outs`` in place."""
+        cfg = refiner.config
+        n = np.array([len(frames[i]) for i in rows])
+        corr = np.stack([outs[i][7] for i in rows])
+        ext = np.stack([outs[i][8] for i in rows])
+        has = n >= max(cfg.min_points, 1)
+        again = has & (ext[:, 0] >= cfg.repeat_min_length) & (n >= cfg.repeat_min_points) \
+            & (np.hypot(corr[:, 0], corr[:, 1]) >= cfg.repeat_shift)
+        if cfg.iterations > 1 and again.any():
+            idx = np.flatnonzero(again)
+            first = np.stack([outs[rows[j]][1] for j in idx])
+            new, _ = refiner.refine([frames[rows[j]] for j in idx], first, ext[idx],
+                                    [rows[j] for j in idx], self._refiner_run(), first=1)
+            moved, _ = apply_corrections(np.stack([outs[rows[j]][0] for j in idx]), first,
+                                         delta(first, new))
+            for k, j in enumerate(idx):
+                i = rows[j]
+                out = list(outs[i])
+                out[0], out[1] = moved[k], new[k]
+                corr[j, :4] = delta(out[6], new[k])[0]
+                outs[i] = tuple(out)
+        for j, i in enumerate(rows):
+            st = states[i]
+            if has[j]:
+                st.correction = corr[j]
+            elif not len(frames[i]) and st.correction is not None:
+                out = list(outs[i])
+                c, p = apply_corrections(out[0][None], out[1][None], st.correction[None])
+                out[0], out[1] = c[0], p[0]
+                outs[i] = tuple(out)
 
     def _refine(self, states: list[_TrackState], frames: list[np.ndarray],
                 complete: list[np.ndarray], pose: list[np.ndarray]
@@ -503,7 +605,7 @@ class Estimator:
     def _check(self, name: str) -> bool:
         """``backend="auto"``'s test of backend ``name`` (its engine is kept when it passes);
         raises :class:`~seqshape.errors.MissingDependencyError` when its runtime is missing."""
-        fast = Estimator(self.model, self.threads, backend=name)
+        fast = Estimator(self.model, self.threads, backend=name, refiner=self.refiner)
         self._engine = fast._engine
         return check_backend(fast)
 
@@ -560,13 +662,25 @@ class Estimator:
         points = [check_points(p, f"point_lists[{i}] (track {t!r})")
                   for i, (t, p) in enumerate(zip(track_ids, point_lists, strict=True))]
         _check_hints(len(track_ids), sizes, classes, ego_poses, timestamps)
+        fresh = [t for t in track_ids if t not in self._states]
         states = [self._state(t) for t in track_ids]
+        kept = [(st.length, st.last_time) for st in states]
         frames, counts = self._frames(states, points)
         scale = self._scales(states, frames, sizes, classes)
         dts = self._dts(states, timestamps) if self.model.motion else None
-        run = self._run_torch if self._engine is None else self._run_engine
-        complete, pose = run(states, frames, counts, scale, dts)
-        if self.refiner is not None:
+        fused = self._fused_refiner()
+        if self._engine is None:
+            complete, pose = self._run_torch(states, frames, counts, scale, dts)
+        else:
+            try:
+                complete, pose = self._run_engine(states, frames, counts, scale, dts, fused)
+            except ConfigError:  # a step too large for the memory left: refused, no change
+                for st, (length, last_time) in zip(states, kept, strict=True):
+                    st.length, st.last_time = length, last_time
+                for t in fresh:
+                    self._states.pop(t, None)
+                raise
+        if self.refiner is not None and fused is None:
             complete, pose = self._refine(states, frames, complete, pose)
         result = []
         for i, tid in enumerate(track_ids):
@@ -616,7 +730,7 @@ def check_backend(fast: Estimator) -> bool:
                      mine.round(4).tolist(), allowed.round(4).tolist())
             return False
         return True
-    ref = Estimator(fast.model, backend="torch")
+    ref = Estimator(fast.model, backend="torch", refiner=fast.refiner)
     tol_shape, tol_centre, tol_yaw = fast._engine.tolerance
     for step in check_stream(fast.model.cfg.num_points):
         for a, b in zip(fast.step(**step), ref.step(**step), strict=True):
@@ -643,7 +757,8 @@ def noise_quantiles(fast: Estimator, steps: Sequence[dict], noise: float, seed: 
     reset state) from the reference's (``"torch"`` on the same model), and of the reference's
     own estimates of the same steps with Gaussian noise of ``noise`` m (seeded) on every
     point."""
-    ref, noisy = (Estimator(fast.model, backend="torch") for _ in range(2))
+    ref, noisy = (Estimator(fast.model, backend="torch", refiner=fast.refiner)
+                  for _ in range(2))
     fast.reset()
     rng = np.random.default_rng(seed)
     mine, allowed = [], []
@@ -754,3 +869,10 @@ def _ego_pose(ego_poses: Sequence | None, i: int) -> np.ndarray | None:
         raise ConfigError(f"ego_poses[{i}] must be a finite (4, 4) matrix, got shape "
                           f"{pose.shape}")
     return pose
+
+
+def _capped(group: np.ndarray, points: int, max_rows: int) -> list[np.ndarray]:
+    """``group`` (indices of one pass of ``points`` padded points) cut into passes of at most
+    ``max_rows`` encoder rows (tracks x points; at least one track a pass)."""
+    per = max(1, max_rows // max(points, 1))
+    return [group[k:k + per] for k in range(0, len(group), per)]

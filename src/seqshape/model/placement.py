@@ -326,18 +326,21 @@ class PlacementRefiner:
         return self.refine(points, poses, extents, seeds, run)[0]
 
     def refine(self, points: Sequence[np.ndarray], poses: np.ndarray, extents: np.ndarray,
-               seeds: Sequence[int] | None = None, run: Forward | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+               seeds: Sequence[int] | None = None, run: Forward | None = None,
+               first: int = 0) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`refine_poses` and the size corrections ``(F, 2)``: the log ratios of the
         shape's length and width (the first pass's, clipped to ``max_resize``; 0 without a
-        size head, with ``config.size`` off, or for a frame left alone)."""
+        size head, with ``config.size`` off, or for a frame left alone). ``first``: the
+        passes before it are done already (``poses`` are their outcome; the inference
+        engine's refined graphs run the first pass, :class:`~seqshape.model.engine.
+        RefinedStepGraph`)."""
         cfg = self.config
         poses = np.array(poses, dtype=np.float64).reshape(-1, 4)
         sizes = np.zeros((len(poses), 2))
         seeds = list(range(len(poses))) if seeds is None else list(seeds)
         ok = [i for i, p in enumerate(points) if len(p) >= max(cfg.min_points, 1)
               and np.all(np.isfinite(poses[i])) and np.all(np.isfinite(extents[i][:1]))]
-        for it in range(cfg.iterations):
+        for it in range(first, cfg.iterations):
             if not ok:
                 break
             d = self.corrections([points[i] for i in ok], poses[ok], np.asarray(extents)[ok],
