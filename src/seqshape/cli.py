@@ -191,23 +191,23 @@ def main(argv: list[str] | None = None) -> int:
     args = sub.parse_args(rest)
     logging.basicConfig(level=logging.DEBUG if head.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
-    debug = head.debug or head.verbose
     try:
         return int(module.run(args) or 0)
     except SeqshapeError as exc:
-        line = f"seqshape {head.command}: error: {exc}"
+        error, line = exc, f"seqshape {head.command}: error: {exc}"
     except MemoryError as exc:
-        line = unexpected_error_line(head.command, exc, args)
+        error, line = exc, unexpected_error_line(head.command, exc, args)
     except OSError as exc:  # unwritable output, disk full...: the path, not a traceback
+        error = exc
         line = f"seqshape {head.command}: error: {os_error_line(exc, getattr(args, 'out', None))}"
     except KeyboardInterrupt:
         print(f"seqshape {head.command}: interrupted; rerun the same command to resume",
               file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - the one top-level handler: no traceback
-        line = unexpected_error_line(head.command, exc, args)
-    if debug:
-        traceback.print_exc(file=sys.stderr)
+        error, line = exc, unexpected_error_line(head.command, exc, args)
+    if head.debug or head.verbose:
+        traceback.print_exception(error, file=sys.stderr)
     print(line, file=sys.stderr)
     return 1
 

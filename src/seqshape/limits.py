@@ -170,13 +170,13 @@ def _sweep_refusal(points, far, negative, n_finite, what, names, strength,
         rules.append(f"{negative.mean():.0%} a negative {names.split()[strength]}")
     head = (f"{share:.0%} of the {n_finite} finite points are impossible "
             f"({', '.join(rules)}): not a plausible {what} of float32 ({names}) points")
-    columns = points.shape[1]
     if file_bytes is not None:
-        layout = likely_layout(points, file_bytes, columns,
-                               coordinates_bad=bool(far.sum() >= negative.sum()))
-        return head + (f"; its {file_bytes} bytes fit {layout}: likely written in that "
-                       "layout" if layout else "; no other layout fits: random or corrupt "
-                       "data")
+        # the points are the whole file, in order (a headerless float32 file)
+        data = np.ascontiguousarray(points).view(np.uint8).reshape(-1)[:file_bytes]
+        layout = likely_layout(data, points.shape[1])
+        return head + (f"; its {file_bytes} bytes read as {layout} give plausible points: "
+                       "likely written in that layout" if layout else "; no other layout "
+                       "fits: random or corrupt data")
     with np.errstate(invalid="ignore", over="ignore"):
         dist = np.sqrt((points[:, :3].astype(np.float64) ** 2).sum(1))
     dist = dist[np.isfinite(dist)]
@@ -186,29 +186,46 @@ def _sweep_refusal(points, far, negative, n_finite, what, names, strength,
     return head
 
 
-def likely_layout(points: np.ndarray, file_bytes: int, columns: int,
-                  coordinates_bad: bool = True) -> str | None:
-    """The layout a headerless float32 point file of ``columns`` columns was likely written
-    in, when read as such it gives impossible points, or None.
+#: layouts a headerless point file may have been written in: (dtype, columns)
+#: (wider first: a narrower layout read as a wider one puts coordinates, half of them
+#: negative, in the strength column, but a wider one read as narrower looks plausible)
+_LAYOUTS = (("<f4", 5), ("<f4", 4), ("<f4", 3), ("<f8", 5), ("<f8", 4), ("<f8", 3))
 
-    ``coordinates_bad``: the points' coordinates are beyond range (float64 values read as
-    float32 pairs, random bytes): a float64 layout whose values are all plausible is named.
-    Otherwise the coordinates are fine but the strength column is negative (it holds
-    coordinates): a float32 layout of other width whose length the file fits and whose own
-    strength column (if any) is non-negative is named.
+#: bytes of a file :func:`likely_layout` looks at (a multiple of every layout's point size)
+_SAMPLE_BYTES = 480 * 2048
+
+
+def likely_layout(data, columns: int) -> str | None:
+    """The layout a headerless float32 point file of ``columns`` columns was likely written
+    in instead, from its bytes ``data`` (the first ~1 MB are enough), or None.
+
+    A layout is named when the file's length fits it and its points are plausible: at least
+    99 % finite with coordinates within :data:`MAX_POINT_RANGE`, a non-negative fourth
+    column (reflectance, intensity) where it has one, and a median distance of at least
+    0.5 m (float32 pairs read as float64 give tiny values).
+
+    >>> import numpy as np
+    >>> xyz = np.random.default_rng(0).normal(0, 20, (300, 3))
+    >>> likely_layout(xyz.astype("<f8").tobytes(), 4), likely_layout(xyz.tobytes()[:-1], 4)
+    ('float64 (N, 3)', None)
     """
-    raw = np.ascontiguousarray(points).view(np.uint8).reshape(-1)[:file_bytes]
-    dtype = "<f8" if coordinates_bad else "<f4"
-    for cols in (4, 3, 5):
+    data = np.frombuffer(memoryview(data).cast("B"), np.uint8)
+    size = len(data)
+    sample = data[:_SAMPLE_BYTES]
+    for dtype, cols in _LAYOUTS:
         width = np.dtype(dtype).itemsize * cols
-        if (dtype == "<f4" and cols == columns) or not file_bytes or file_bytes % width:
+        if (dtype, cols) == ("<f4", columns) or not size or size % width:
             continue
-        other = np.frombuffer(raw, dtype=dtype).reshape(-1, cols)
-        with np.errstate(invalid="ignore"):
+        other = np.frombuffer(sample[:len(sample) - len(sample) % width], dtype=dtype)
+        other = other.reshape(-1, cols)
+        with np.errstate(invalid="ignore", over="ignore"):
             good = np.isfinite(other).all(1) & (np.abs(other[:, :3]) <= MAX_POINT_RANGE).all(1)
             if cols > 3:
                 good &= other[:, 3] >= 0
-        if good.mean() >= 1 - MAX_BAD_POINT_SHARE:
+            if not len(other) or good.mean() < 1 - MAX_BAD_POINT_SHARE:
+                continue
+            dist = np.sqrt((other[good, :3].astype(np.float64) ** 2).sum(1))
+        if np.median(dist) >= 0.5:
             kind = "float64" if dtype == "<f8" else "float32"
-            return f"{kind} (N, {cols}) ({file_bytes // width} points)"
+            return f"{kind} (N, {cols})"
     return None

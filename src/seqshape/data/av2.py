@@ -370,7 +370,7 @@ class Av2Log(DrivingLog):
     def _read_intrinsics(self) -> dict[str, tuple[np.ndarray, tuple[int, int], np.ndarray]]:
         """Camera name -> (K (3, 3), (width, height), (k1, k2, k3)); empty without the file."""
         path = self.path / INTRINSICS
-        if not path.is_file():
+        if not path.exists():  # a FIFO or folder in its place is refused by read_table
             return {}
         t = read_table(path, _INTRINSIC_COLUMNS, "camera intrinsics")
         _unique(t["sensor_name"], path, "sensor_name")

@@ -140,7 +140,7 @@ def read_manifest(folder: str | Path) -> dict[str, Any]:
     (:func:`check_entry`).
     """
     mpath = Path(folder) / MANIFEST
-    if not mpath.is_file():
+    if not mpath.exists():  # a FIFO or a folder in its place is refused by _read_json
         raise DataError(mpath, "missing manifest: not a seqshape track dataset, or its "
                                "generation has not finished (rerun the same command)")
     manifest = _read_json(mpath)

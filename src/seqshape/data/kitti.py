@@ -553,14 +553,14 @@ class KittiTrackingSequence(DrivingLog):
         if not self.root.is_dir():
             raise DataError(self.root, "no such KITTI root folder")
         lpath = label_path(self.root, self.sequence)
-        self.labels: list[KittiLabel] = read_labels(lpath) if lpath.is_file() else []
+        self.labels: list[KittiLabel] = read_labels(lpath) if lpath.exists() else []
         self.labels_by_frame = labels_by_frame(self.labels)
         self.frames = self._find_frames()
         opath = oxts_path(self.root, self.sequence)
-        self.oxts: np.ndarray | None = read_oxts(opath) if opath.is_file() else None
+        self.oxts: np.ndarray | None = read_oxts(opath) if opath.exists() else None
         self._calib: KittiCalib | None = None
         self._ego: np.ndarray | None = None
-        has_calib = calib_path(self.root, self.sequence).is_file()
+        has_calib = calib_path(self.root, self.sequence).exists()  # not a file: refused
         self.camera_names = CAMERAS if has_calib else ()
         self.default_camera = CAMERAS[0] if has_calib else None
 
@@ -577,7 +577,7 @@ class KittiTrackingSequence(DrivingLog):
     def calib(self) -> KittiCalib:
         if self._calib is None:
             calib = read_calib(calib_path(self.root, self.sequence))
-            if self.frames and self.image_path(self.frames[0]).is_file():
+            if self.frames and self.image_path(self.frames[0]).exists():
                 calib.image_size = png_size(self.image_path(self.frames[0]))
             self._calib = calib
         return self._calib

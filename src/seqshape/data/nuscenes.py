@@ -248,7 +248,7 @@ class NuScenesTables:
         self.table_dir = self.dataroot / version
         raw = {name: _read_table(self.path(name)) for name in TABLES}
         for name in OPTIONAL_TABLES:
-            raw[name] = _read_table(self.path(name)) if self.path(name).is_file() else []
+            raw[name] = _read_table(self.path(name)) if self.path(name).exists() else []
         for name in ("scene", "sample", "instance", "category", "calibrated_sensor", "sensor",
                      "log", *OPTIONAL_TABLES):
             setattr(self, name, _by_token(raw[name], self.path(name)))

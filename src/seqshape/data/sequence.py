@@ -127,28 +127,21 @@ def read_float32(path, columns: int, what: str, names: str) -> np.ndarray:
     """The little-endian float32 values of a headerless point file (KITTI ``.bin``, nuScenes
     ``.pcd.bin``) as a flat array; a missing, unreadable or non-regular file (a FIFO, a
     folder), one larger than ``limits.MAX_FILE_BYTES["points"]``, or a byte length that is
-    not a whole number of ``columns``-float points is a :class:`DataError` naming it."""
+    not a whole number of ``columns``-float points (naming the layout the file likely has,
+    :func:`seqshape.limits.likely_layout`) is a :class:`DataError` naming it."""
     path = Path(path)
     size = check_regular(path, what, "points")
-    if size % (4 * columns):
-        raise DataError(path, _length_refusal(size, columns, what, names))
     try:
-        raw = np.fromfile(path, dtype="<f4")
+        raw = np.fromfile(path, dtype=np.uint8)
     except (OSError, ValueError) as exc:
         raise DataError(path, f"unreadable {what} ({exc})") from None
-    if raw.nbytes != size:  # changed since the check
-        raise DataError(path, _length_refusal(raw.nbytes, columns, what, names))
-    return raw
-
-
-def _length_refusal(size: int, columns: int, what: str, names: str) -> str:
-    fits = [f"{name} ({n} x {width} bytes)" for name, width in
-            (("float32 (N, 3)", 12), ("float64 (N, 3)", 24), ("float64 (N, 4)", 32),
-             ("float32 (N, 4)", 16), ("float32 (N, 5)", 20))
-            for n in [size // width] if width != 4 * columns and size and size % width == 0]
-    hint = f"; the length fits {fits[0]}" if fits else ""
-    return (f"size {size} bytes is not a multiple of {4 * columns} ({columns} float32 per "
-            f"point: {names}): truncated or not a {what}{hint}")
+    if len(raw) % (4 * columns) or len(raw) != size:
+        layout = limits.likely_layout(raw, columns)
+        hint = f"; it reads as {layout} points: likely written in that layout" if layout else ""
+        raise DataError(path, f"size {len(raw)} bytes is not a multiple of {4 * columns} "
+                              f"({columns} float32 per point: {names}): truncated or not a "
+                              f"{what}{hint}")
+    return raw.view("<f4")
 
 
 def read_sweep(path, columns: int, what: str, names: str, strength: int | None = 3
