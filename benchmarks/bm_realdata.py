@@ -118,7 +118,7 @@ def read_frames(path: Path) -> dict[str, dict[str, np.ndarray]]:
     with open(path, newline="") as f:
         for r in csv.DictReader(f):
             c = cols.setdefault(r["method"], {k: [] for k in (
-                "centre", "radial", "yaw", "length", "width", "cd", "n_det", "track")})
+                "centre", "radial", "yaw", "length", "width", "cd", "n_det", "track", "cls")})
 
             def num(key, scale=1.0, r=r):
                 v = r.get(key, "")
@@ -131,6 +131,7 @@ def read_frames(path: Path) -> dict[str, dict[str, np.ndarray]]:
             c["cd"].append(num("cd_m", 100))
             c["n_det"].append(int(r["n_det"]))
             c["track"].append(r["track_id"])
+            c["cls"].append(r.get("class", ""))
     return {m: {k: np.asarray(v) for k, v in c.items()} for m, c in cols.items()}
 
 
@@ -167,6 +168,9 @@ def summarise(rows: dict[str, dict[str, np.ndarray]], parked: dict[str, bool]) -
             "bins": [_med(c["centre"][_in_bin(c["n_det"], lo, hi)]) for lo, hi in BINS],
             "bin_frames": [int(_in_bin(c["n_det"], lo, hi).sum()) for lo, hi in BINS],
             "from9_med": _med(c["centre"][c["n_det"] >= 9]),
+            "car_frames": int((c["cls"] == "car").sum()),
+            "car_centre_med": _med(c["centre"][c["cls"] == "car"]),
+            "larger_centre_med": _med(c["centre"][(c["cls"] != "car") & (c["cls"] != "")]),
         }
     return out
 
@@ -198,6 +202,8 @@ def print_source(name: str, s: dict) -> None:
                   f'{_f(v["flip_pct"])} ({_f(v["flip_moving_pct"])} / '
                   f'{_f(v["flip_parked_pct"])})', _f(v["length_med"]), _f(v["width_med"]),
                   _f(v["cd_mean"])] for m, v in s.items()])
+    print(f"\nmedian centre error (cm), cars / larger vehicles ({name}): " + "; ".join(
+        f"{m} {_f(v['car_centre_med'])} / {_f(v['larger_centre_med'])}" for m, v in s.items()))
     labels = [f"{lo}" if lo == hi else (f"{lo}+" if hi is None else f"{lo}-{hi}")
               for lo, hi in BINS]
     print(f"\nmedian centre error (cm) by detections so far ({name}; frames in brackets)\n")

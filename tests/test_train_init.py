@@ -266,3 +266,28 @@ def test_init_changes_the_points_per_frame(dataset, source, tmp_path):
     a, b = old.step(["u"], big)[0], new.step(["u"], big)[0]
     assert (a.num_points, b.num_points) == (old_n, old_n // 2)  # the points fed
     assert not np.array_equal(a.complete, b.complete)
+
+
+def test_cli_init_takes_the_architecture_of_its_weights():
+    """``seqshape train --init pretrained`` (the fine-tuning recipe) builds the shipped
+    weights' architecture whatever the preset's is; ``--model-set`` still wins; without
+    ``--init`` the preset's stands."""
+    import argparse
+
+    from seqshape.model.estimator import read_model_file
+    from seqshape.model.weights import pretrained_path
+    from seqshape.scripts.train import add_arguments, build_config
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    shipped = read_model_file(pretrained_path("sequential"))["model_config"]
+    args = parser.parse_args(["--data", "D", "--out", "O", "--init", "pretrained",
+                              "--stage-steps", "0,0,10"])
+    got = build_config(args).model_config().to_dict()
+    assert {k: got[k] for k in shipped} == shipped
+    assert got["motion_input"] and got["frame_skip"]  # what the preset lacks
+    args = parser.parse_args(["--data", "D", "--out", "O", "--init", "pretrained",
+                              "--model-set", "num_points=128"])
+    assert build_config(args).model_config().num_points == 128
+    plain = build_config(parser.parse_args(["--data", "D", "--out", "O"])).model_config()
+    assert plain.to_dict() == get_train_config("small").model_config().to_dict()

@@ -65,6 +65,7 @@ import torch.nn.functional as F
 from seqshape.data.windows import points_lengths, resample_frame
 from seqshape.errors import ConfigError
 from seqshape.model.estimator import Estimate, _class_floor, _length_hint, check_points
+from seqshape.model.extents import bound_extents
 from seqshape.model.heading import (
     HeadingConfig,
     HeadingFilter,
@@ -91,6 +92,7 @@ from seqshape.model.smooth import (
 MODES = ("online", "offline")
 SHAPE_SOURCES = ("online", "final", "two-pass", "bidirectional", "average")
 POSE_SOURCES = ("online", "two-pass", "bidirectional")
+EXTENTS = ("none", "bound", "anchor")
 
 
 @dataclass(frozen=True)
@@ -125,6 +127,11 @@ class OfflineConfig:
     weigh less (None: no ramp; off by default, as ``full_points``)."""
     shape_decay: float = SHAPE_DECAY
     """``shape="average"``: frame j's shape weighs ``shape_decay ** |t - j|`` at frame t."""
+    extents: str = "none"
+    """Bound each segment's length and width by the track's observed points
+    (:func:`seqshape.model.extents.bound_extents`): ``"none"``, ``"bound"`` (never short of
+    what was seen; the observed span where both faces were seen) or ``"anchor"`` (also a
+    single seen face placed where it was observed)."""
 
     def __post_init__(self):
         if self.shape not in SHAPE_SOURCES:
@@ -138,6 +145,9 @@ class OfflineConfig:
                               f"{self.vote_decay}")
         check_weighting("OfflineConfig", self.full_points, self.ramp)
         check_decay("OfflineConfig", self.shape_decay)
+        if self.extents not in EXTENTS:
+            raise ConfigError(f"OfflineConfig.extents must be one of {EXTENTS}, got "
+                              f"{self.extents!r}")
 
     @property
     def two_pass(self) -> bool:
@@ -342,6 +352,9 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
     else:
         complete, own = passes[cfg.shape]["complete"], passes[cfg.shape]["pose"]
     complete = place_shapes(complete, own, poses)
+    if cfg.extents != "none":
+        complete, poses = bound_extents(p.frames, complete, poses, segments,
+                                        anchor=cfg.extents == "anchor")
     flips = (consistent_flips(poses, p.egos, p.counts > 0, estimator.heading, cfg.vote_decay,
                               segments) if cfg.heading else None)
     return _finish(estimator, p, complete, poses, flips)

@@ -115,11 +115,25 @@ def build_config(args: argparse.Namespace):
     cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     if args.no_tensorboard:
         cfg = dataclasses.replace(cfg, tensorboard=False)
-    if args.model_set:
-        cfg = dataclasses.replace(cfg, model_overrides={**cfg.model_overrides,
+    init = _init_model_config(args)
+    if args.model_set or init:
+        # a fine-tune takes the architecture of the weights it starts from; --model-set wins
+        cfg = dataclasses.replace(cfg, model_overrides={**cfg.model_overrides, **init,
                                                         **_model_sets(args.model_set)})
         cfg.model_config()  # validate now
     return cfg
+
+
+def _init_model_config(args: argparse.Namespace) -> dict:
+    """The model configuration of the ``--init`` weights (empty without ``--init``), so that
+    ``--init pretrained`` fine-tunes the shipped architecture whatever the preset's is."""
+    if not getattr(args, "init", None) or getattr(args, "resume", False):
+        return {}
+    from seqshape.model.estimator import read_model_file
+    from seqshape.train.checkpoint import resolve_init
+
+    payload = read_model_file(resolve_init(args.init, args.model))
+    return dict(payload.get("model_config") or {})
 
 
 def _model_sets(items: list[str]) -> dict:
