@@ -1,6 +1,7 @@
 # Two entry points for a fresh machine with Python 3.11:
 #   make demo   set up .venv, then run the main job on embedded defaults
 #   make test   set up .venv, then run the test suite (what CI runs)
+#   make docs   set up .venv, then build the documentation site into build/site (offline)
 # PyTorch: TORCH=cpu (default: the CPU wheel, ~190 MB, from TORCH_INDEX beside your usual
 # indexes), TORCH=cuda (PyPI's default Linux build with CUDA, several GB), or TORCH=skip (keep
 # the torch already in the venv). To switch later: make clean setup TORCH=cuda
@@ -25,7 +26,7 @@ endif
 # come with seqshape's from your usual indexes, and an unreachable TORCH_INDEX is asked once.
 TORCH_PIP := $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX),)
 
-.PHONY: setup demo test test-slow bench lint clean
+.PHONY: setup demo test test-slow bench lint docs clean
 
 $(VENV)/.installed: pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found (set PYTHON=...)"; exit 1; }
@@ -57,6 +58,10 @@ test-slow: setup
 
 bench: setup
 	for f in benchmarks/bm_*.py; do $(PY) $$f || exit 1; done
+
+docs: setup
+	$(VENV)/bin/mkdocs build --strict --site-dir build/site
+	@echo "==> open build/site/index.html"
 
 lint: setup
 	$(VENV)/bin/ruff check src tests benchmarks
