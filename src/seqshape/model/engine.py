@@ -100,7 +100,7 @@ BUCKET_FILL, BUCKET_MIN_ROWS = 0.75, 16
 #: :data:`LARGE_PASS_THREADS` threads when ``threads`` is left at None and a core is free
 #: (:func:`spare_cores`; one-track passes too, see :class:`OnnxEngine`); the other passes of
 #: a few tracks run on one thread, the fastest for them. Two threads on cores that other
-#: processes keep busy lose throughput (docs/model.md, "Threads"). 1,024 rather than 4,096:
+#: processes keep busy lose throughput (docs/history/model.md, "Threads"). 1,024 rather than 4,096:
 #: 100 live tracks 2,595-2,684 against 2,347-2,461 updates/s, interleaved runs on a quiet
 #: machine (18:23 UTC, 2026-12-02).
 LARGE_PASS_ROWS = 1024
@@ -117,13 +117,13 @@ SPARE_CHECK_PERIOD = 0.1
 #: The layers whose weights ``"onnx-int8"`` quantises (:func:`quantize_onnx`): the shape
 #: decoder, 70 % of the weights and of the bytes a single-track step reads. Quantising the
 #: encoder, the GRU or the pose decoder as well turns some tracks' yaws by tens of degrees
-#: (docs/model.md, "Inference backends (issue 17)").
+#: (docs/history/model.md, "Inference backends (issue 17)").
 INT8_LAYERS = ("shape_decoder",)
 #: The same for the batched step graph (:class:`StepGraph`), the one of many-track passes:
 #: also the encoder's per-point layers after the split one (``mlp2_rest``; 61 % of the
 #: encoder's multiply-adds with the ``small`` preset), 1.4-1.6x the float32 throughput of 100
 #: live tracks. Every per-point product of the encoder would add 3 % more and move yaws twice
-#: as far (docs/model.md, "Fifth round: the encoder in int8").
+#: as far (docs/history/model.md, "Fifth round: the encoder in int8").
 INT8_STEP_LAYERS = ("shape_decoder", "mlp2_rest")
 #: The refiner's layers ``"onnx-int8"`` quantises in the refined batch graph
 #: (:class:`RefinedStepGraph`): its last per-point layer (57 % of its multiply-adds), in the
@@ -158,7 +158,7 @@ INT8_TOLERANCE = (6e-2, TOLERANCE[1], TOLERANCE[2])
 #: :func:`car_stream`, three seeds (90th percentiles, int8 against 1 cm of noise, mean of the
 #: seeds): sequential worst shape point 3.5 against 18.9 cm, centre 0.37 against 2.1 cm, yaw
 #: 0.8 against 4.4 degrees; baseline 5.4, 0.85 and 1.2 against 19.9, 3.4 and 4.2; paper-val
-#: metrics within 0.5 % (docs/model.md, "Sixth round: int8 per track").
+#: metrics within 0.5 % (docs/history/model.md, "Sixth round: int8 per track").
 #: A wrong scale or zero point moves every estimate by decimetres.
 INT8_NOISE = 0.01
 

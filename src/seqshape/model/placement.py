@@ -3,7 +3,7 @@
 The network regresses a vehicle's centre from one max-pooled feature of the demeaned points;
 where the points sit on the vehicle (which faces are seen, how far the near face lies from the
 centre) reaches the centre only through that global feature. A box fit anchors the visible
-faces and out-places it on dense frames (docs/results.md, "Why real cars are placed too far
+faces and out-places it on dense frames (docs/history/results.md, "Why real cars are placed too far
 from the sensor"). The refiner is the two-stage detectors' answer (a proposal's points in its
 canonical frame, PointRCNN / PV-RCNN style): the frame's points are moved into the estimated
 box frame (centre at the origin, heading along +x), a small PointNet reads them with the
@@ -18,7 +18,7 @@ SCALE_MAX)`` of the estimated length L, so a bus reaches the network at a car's 
 the conditioning vector :data:`COND_FIELDS`. Output corrections are multiplied back by s.
 A refiner with the size head (``outputs=6``, :data:`CORRECTION_FIELDS`) also regresses the log
 ratios of the true length and width to the placed shape's, which stretch the shape about its
-centre (:class:`RefinerConfig` ``size``, ``size_width``; docs/model.md, "Size head").
+centre (:class:`RefinerConfig` ``size``, ``size_width``; docs/history/model.md, "Size head").
 """
 
 from __future__ import annotations
@@ -190,8 +190,8 @@ class RefinerConfig:
     """How the refiner is applied. The default: up to three passes for estimates of 6 m and
     more (trucks, buses, trailers: their errors are large against the per-pass clip and the
     training disturbances), one for cars, on which further passes helped nothing on synthetic
-    data and compounded a wrong first correction on a real car (docs/model.md, "Further passes
-    for long vehicles").
+    data and compounded a wrong first correction on a real car (docs/history/model.md,
+    "Further passes for long vehicles").
 
     iterations: most passes; each re-reads the points in the box frame the last one corrected.
     min_points: a frame with fewer points is left alone.
