@@ -131,13 +131,21 @@ def open_regular(path: str | Path, what: str, kind: str = "text") -> Iterator[IO
 def read_bytes(path: str | Path, what: str, kind: str = "text") -> bytes:
     """The bytes of the regular file ``path`` (:func:`open_regular`, bounded by
     ``MAX_FILE_BYTES[kind]``); a read error is a :class:`DataError` naming it."""
+    limit = MAX_FILE_BYTES[kind]
     with open_regular(path, what, kind) as fh:
         try:
-            data = fh.read(MAX_FILE_BYTES[kind] + 1)
+            size = os.fstat(fh.fileno()).st_size
+            data = fh.read(size + 1)  # one byte more: a file that grew is read on, bounded
+            if len(data) > size:
+                chunks, total = [data], len(data)
+                while chunk := fh.read(1 << 20):
+                    total += len(chunk)
+                    if total > limit:
+                        raise DataError(path, f"{what} is larger than {limit} bytes")
+                    chunks.append(chunk)
+                data = b"".join(chunks)
         except OSError as exc:
             raise DataError(path, f"unreadable {what} ({_words(exc)})") from None
-    if len(data) > MAX_FILE_BYTES[kind]:  # grew since the check
-        raise DataError(path, f"{what} is larger than {MAX_FILE_BYTES[kind]} bytes")
     return data
 
 
