@@ -102,6 +102,15 @@ def test_a_broken_input_ends_in_one_line_naming_it(broken, command, caplog):
     assert len(lines) == 1 and str(bad) in lines[0], text
 
 
+def _ort_error(name: str, message: str) -> Exception:
+    """onnxruntime's exception ``name`` (a stand-in of that name without onnxruntime)."""
+    try:
+        from onnxruntime.capi import onnxruntime_pybind11_state as ort
+        return getattr(ort, name)(message)
+    except ImportError:  # pragma: no cover - onnxruntime is a dependency
+        return type(name, (Exception,), {})(message)
+
+
 def _raising(exc: BaseException):
     def run(args):
         raise exc
@@ -112,10 +121,14 @@ def _raising(exc: BaseException):
     (ValueError("a check nobody wrote"), r"unexpected ValueError: a check nobody wrote "
                                          r"\(input: --dataset .*ds\); hint: check that input"),
     (MemoryError(), r"out of memory \(input: --dataset .*ds\): MemoryError"),
-    # onnxruntime's Fail of a failed allocation (the class is a RuntimeError subclass)
-    (type("Fail", (RuntimeError,), {})(
-        "[ONNXRuntimeError] : 1 : FAIL : bad allocation: Failed to allocate memory for "
-        "requested buffer of size 4294967296"), r"out of memory .*Fail: .*hint: process less"),
+    # onnxruntime's RuntimeException of a failed allocation in a forward pass
+    (_ort_error("RuntimeException", "[ONNXRuntimeError] : 6 : RUNTIME_EXCEPTION : Non-zero "
+                "status code returned while running MatMul node. Status Message: "
+                "bfc_arena.cc:376 AllocateRawInternal Failed to allocate memory for requested "
+                "buffer of size 4294967296"),
+     r"out of memory .*RuntimeException: .*hint: process less"),
+    (_ort_error("Fail", "[ONNXRuntimeError] : 1 : FAIL : std::bad_alloc"),
+     r"out of memory .*Fail: .*bad_alloc; hint: process less"),
 ])
 def test_an_unexpected_error_is_one_line_with_the_input_and_a_hint(monkeypatch, broken, exc,
                                                                    words):
