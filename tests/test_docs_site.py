@@ -23,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "docs" / "_hooks"))
 
 import cli_reference  # noqa: E402 (the hook lives with the docs, not in the package)
+import rst_roles  # noqa: E402
 
 from seqshape.cli import COMMANDS, command_parser  # noqa: E402
 
@@ -64,6 +65,9 @@ def test_the_api_reference_is_generated_from_the_docstrings(site):
     first_line = Estimator.step.__doc__.strip().splitlines()[0].strip()
     assert 'id="seqshape.model.estimator.Estimator.step"' in api
     assert first_line.split("``")[0][:40] in api
+    assert ":func:" not in api and ":class:" not in api  # roles read as code (rst_roles)
+    assert rst_roles.plain_roles("see :func:`~a.b` and :class:`C`, not :x:`y`") == (
+        "see `a.b` and `C`, not :x:`y`")
 
 
 def test_the_cli_reference_walks_every_parser(site):
