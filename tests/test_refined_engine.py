@@ -315,3 +315,49 @@ def test_memory_error_of_torch_lean_is_split_too(monkeypatch):
     ref.step(**_steps(17, n_steps=1)[0])
     for step in _steps(17, n_steps=3)[1:]:
         assert np.abs(deviations(est.step(**step), ref.step(**step))).max() <= 1e-5
+
+
+_CAPPED_STEP = r"""
+import resource, sys
+import numpy as np
+from seqshape.errors import ConfigError
+from seqshape.model import Estimator
+from seqshape.testing import box_surface
+
+est = Estimator.from_pretrained("sequential", backend="onnx-int8", threads=1)
+rng = np.random.default_rng(0)
+n = 6000
+clouds = [box_surface(256, rng, pose=(10 + i % 50, (i // 50) % 40 - 20, -0.9, 0.3),
+                      dtype=np.float32) for i in range(n)]
+ids = [f"t{i}" for i in range(n)]
+est.step(ids[:3], clouds[:3])
+with open("/proc/self/status") as f:
+    vm = int(next(line for line in f if line.startswith("VmSize")).split()[1]) // 1024
+resource.setrlimit(resource.RLIMIT_AS, ((vm + 600) << 20, resource.RLIM_INFINITY))
+try:
+    out = est.step(ids, clouds)
+    print("ok", len(out))
+except ConfigError as exc:
+    print("ConfigError", exc)
+"""
+
+
+@pytest.mark.slow
+def test_a_step_under_a_real_memory_cap_ends_cleanly(tmp_path):
+    """6,000 tracks of 256 points in a process whose address space is capped 600 MB above
+    its size after loading (``RLIMIT_AS``): the step either runs (in capped passes) or is
+    refused with a ConfigError; never ONNX Runtime's raw Fail, a crash or numpy's
+    MemoryError (about 20 s)."""
+    import subprocess
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("RLIMIT_AS and /proc: Linux")
+    script = tmp_path / "capped.py"
+    script.write_text(_CAPPED_STEP)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    assert last == "ok 6000" or last.startswith("ConfigError not enough memory for a step of "
+                                                "6000 tracks"), last

@@ -482,26 +482,36 @@ class Estimator:
             if len(frames[i]) or st.last is None or st.last[2] != scale[i] \
                     or st.last[3] is not refiner:
                 rows.append(i)
-        if rows:  # a pass per group of similar point counts: less padding to encode
-            lengths = np.array([len(frames[i]) for i in rows])
-            outs: dict[int, tuple] = {}
-            for group in length_buckets(lengths):
-                for part in _capped(group, int(lengths[group].max()), MAX_PASS_ROWS):
-                    self._run_rows([rows[j] for j in part], states, frames, counts, scale,
-                                   dts, limits, outs, b)
-            if refiner is not None:
-                self._finish_refined(refiner, rows, outs, states, frames)
-            for i in rows:
-                st, out = states[i], outs[i]
-                st.hidden, st.mean, st.seen, st.gap = out[2], out[3], bool(out[4]), float(out[5])
-                st.last = (out[0], out[1], float(scale[i]), refiner)
+        outs: dict[int, tuple] = {}
+        lengths = np.array([len(frames[i]) for i in rows] or [0])
+        try:
+            if rows:  # a pass per group of similar point counts: less padding to encode
+                for group in length_buckets(lengths):
+                    for part in _capped(group, int(lengths[group].max()), MAX_PASS_ROWS):
+                        self._run_rows([rows[j] for j in part], states, frames, counts,
+                                       scale, dts, limits, outs, b)
+                if refiner is not None:
+                    self._finish_refined(refiner, rows, outs, states, frames)
+            done = [outs[i] if i in outs else states[i].last for i in range(b)]
+            complete = [d[0].copy() for d in done]
+            pose = [d[1].copy() for d in done]
+        except MemoryError as exc:  # numpy's, between passes (the runtime's arena full)
+            raise ConfigError(f"not enough memory for a step of {b} tracks ({len(rows)} "
+                              f"computed, up to {int(lengths.max())} points each): "
+                              f"{type(exc).__name__} {exc}; step fewer tracks at a time or "
+                              "free memory") from None
+        for i in rows:  # every pass ran: the states change
+            st, out = states[i], outs[i]
+            st.hidden, st.mean, st.seen, st.gap = out[2], out[3], bool(out[4]), float(out[5])
+            st.last = (out[0], out[1], float(scale[i]), refiner)
+            if refiner is not None and out[7] is not None:
+                st.correction = out[7]
         if dts is not None:  # a carried state: the time since a detection grows
             computed = set(rows)
             for i, st in enumerate(states):
                 if i not in computed:
                     st.gap = float(np.float32(st.gap) + dts[i])
-        return [states[i].last[0].copy() for i in range(b)], \
-            [states[i].last[1].copy() for i in range(b)]
+        return complete, pose
 
     def _run_rows(self, rows: list[int], states: list[_TrackState], frames: list[np.ndarray],
                   counts: list[int], scale: np.ndarray, dts: np.ndarray | None,
@@ -549,7 +559,8 @@ class Estimator:
         """The refined graphs' estimates completed as :meth:`_refine` would: the further
         passes of long vehicles (``RefinerConfig.iterations``, on the engine's refiner
         session), the last correction of its track carried to a recomputed frame without
-        points (a new scale), and each refined track's correction kept. ``outs`` in place."""
+        points (a new scale); ``outs`` in place, each row's entry 7 the correction its track
+        keeps (None: the track keeps its own). No state changes here."""
         cfg = refiner.config
         n = np.array([len(frames[i]) for i in rows])
         corr = np.stack([outs[i][7] for i in rows])
@@ -572,13 +583,15 @@ class Estimator:
                 outs[i] = tuple(out)
         for j, i in enumerate(rows):
             st = states[i]
+            out = list(outs[i])
             if has[j]:
-                st.correction = corr[j]
-            elif not len(frames[i]) and st.correction is not None:
-                out = list(outs[i])
-                c, p = apply_corrections(out[0][None], out[1][None], st.correction[None])
-                out[0], out[1] = c[0], p[0]
-                outs[i] = tuple(out)
+                out[7] = corr[j]  # the track's correction from now on (kept at the commit)
+            else:
+                out[7] = None
+                if not len(frames[i]) and st.correction is not None:
+                    c, p = apply_corrections(out[0][None], out[1][None], st.correction[None])
+                    out[0], out[1] = c[0], p[0]
+            outs[i] = tuple(out)
 
     def _refine(self, states: list[_TrackState], frames: list[np.ndarray],
                 complete: list[np.ndarray], pose: list[np.ndarray]
