@@ -2,7 +2,7 @@
 circumradius from the circumcentre, and a per-pixel test of which pixel centres lie inside the
 kept triangles.
 
-Tolerances (docs/amodal.md, "Alpha shape within the label budget"): the mask is filled from
+Tolerances (docs/history/amodal.md, "Alpha shape within the label budget"): the mask is filled from
 the union's boundary loops with ``cv2.fillPoly`` at 1/16 px, which also draws the loops as
 1-pixel lines. So a pixel may differ from the reference only along the union's boundary:
 

@@ -169,8 +169,8 @@ def _projected_vehicles(rng, n_vehicles=6):
 
 
 #: pixels a mask drawn from the boundary loops may differ by from the triangles' fill: this
-#: many, plus this share of its area (docs/amodal.md, "Speed": 12 pixels in 10 of 1,942
-#: kitti-like masks, none more than 3; 6 of 27,369 for a convex hull, ``alpha=0``)
+#: many, plus this share of its area (docs/history/amodal.md, "Speed (issue 17)": 12 pixels in
+#: 10 of 1,942 kitti-like masks, none more than 3; 6 of 27,369 for a convex hull, ``alpha=0``)
 LOOP_FILL_TOLERANCE = (3, 5e-4)
 
 

@@ -9,7 +9,7 @@ kernel, and the next frame page-faults them in again, each page zeroed by the ke
 tests/test_malloc.py). On the dense logs
 `seqshape label --mode sc-seg --workers 2` took 1.23 M minor page faults and 13 s of system
 time for 160 frames. :func:`keep_freed_memory` raises the mmap threshold to glibc's largest
-(32 MiB) and keeps up to 1 GiB of freed heap (docs/amodal.md, "Dense logs, fifth round"):
+(32 MiB) and keeps up to 1 GiB of freed heap (docs/history/amodal.md, "Dense logs, fifth round"):
 the freed blocks are reused instead. Only the process that calls it, only with glibc (not
 musl, macOS or Windows: nothing happens there); the resident memory grows by the largest
 transient, not more.

@@ -20,8 +20,8 @@ of the union's boundary edges (each met by one kept triangle only; about a tenth
 edges) fill what the triangles fill; the lines of the shared edges that touch the boundary
 are drawn as well (:func:`_fill_polygons`). The shared edges deeper inside, and OpenCV's
 clipping at the image border, still leave a few pixels unlike the triangles' fill: 12 pixels
-in 10 of 1,942 kitti-like masks (docs/amodal.md, "Speed"; tests/test_amodal_alpha.py bounds
-it), for 2.5 ms less per vehicle.
+in 10 of 1,942 kitti-like masks (docs/history/amodal.md, "Speed (issue 17)";
+tests/test_amodal_alpha.py bounds it), for 2.5 ms less per vehicle.
 
 Automatic alpha (``alpha=None``): radius
 ``r = max(NN_FACTOR * s_nn, TRI_FACTOR * r_med, MIN_RADIUS_PX)`` where ``s_nn`` is the 90th
