@@ -2,6 +2,7 @@
 data stay inside --out, colour bars), `show-scene` (one label and colour per car in both
 panels), and the plotly layouts (buttons beside the slider, margins)."""
 
+import json
 import os
 from types import SimpleNamespace
 
@@ -65,20 +66,31 @@ def tiny_track(track_id, n=4):
                  np.arange(n) * 0.1, {"split": "val"})
 
 
+def _retitle(data, track_id):
+    """Store track ``track_id`` in ``data``'s one track file, and in its manifest."""
+    save_track(data / "tracks" / "t0.npz", tiny_track(track_id))
+    doc = json.loads((data / "manifest.json").read_text())
+    doc["tracks"][0]["track_id"] = track_id
+    (data / "manifest.json").write_text(json.dumps(doc))
+
+
 def test_show_names_files_from_the_track_id_inside_out(tmp_path, capsys):
-    """The .npz says its track is ``../escaped``: the files land in --out as ``_escaped``."""
+    """The track is ``../escaped``: the files land in --out as ``_escaped``."""
     data = tmp_path / "data"
     write_dataset(data, [tiny_track("t0")])
-    save_track(data / "tracks" / "t0.npz", tiny_track("../escaped"))
+    _retitle(data, "../escaped")
     out = tmp_path / "sub" / "out"
-    assert main(["show", str(data), "--track", "t0", "--out", str(out)]) == 0
+    assert main(["show", str(data), "--track", "../escaped", "--out", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["_escaped.html", "_escaped.png"]
     assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["out"]
     assert not list(tmp_path.glob("escaped*")) and not list(tmp_path.glob("*/escaped*"))
-    save_track(data / "tracks" / "t0.npz", tiny_track("/tmp/abs"))
-    assert main(["show", str(data), "--track", "t0", "--out", str(out), "--no-html"]) == 0
+    _retitle(data, "/tmp/abs")
+    assert main(["show", str(data), "--track", "/tmp/abs", "--out", str(out), "--no-html"]) == 0
     assert (out / "_tmp_abs.png").is_file()
-    capsys.readouterr()
+    # a track file whose own id disagrees with the manifest is refused (issue 45)
+    save_track(data / "tracks" / "t0.npz", tiny_track("t1"))
+    assert main(["show", str(data), "--track", "/tmp/abs", "--out", str(out)]) == 1
+    assert "holds track 't1', but" in capsys.readouterr().err
 
 
 def test_show_refuses_a_link_out_of_the_folder(tmp_path, capsys):

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from seqshape._io import atomic_write_bytes, atomic_write_text
+from seqshape._io import atomic_write_bytes, atomic_write_text, check_regular
 from seqshape.amodal.overlay import OverlayInstance, draw_overlay, track_colour
 from seqshape.data.kins import annotations_by_image, read_kins, segm_to_mask
 from seqshape.data.kitti import KittiTrackingSequence
@@ -297,6 +297,8 @@ def scene_figure(root: Path, sequence: str, frame: int, extent: float = 50.0):
         raise DataError(seq.velodyne_path(frame), f"frame {frame} not in sequence {seq.sequence} "
                                                   f"(frames {seq.frames[:1]}..{seq.frames[-1:]})")
     img_path = seq.image_path(frame)
+    if img_path.exists():  # a FIFO or a folder there: refused, not opened (cv2 would block)
+        check_regular(img_path, "image", "image")
     image = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
     if image is None:
         raise DataError(img_path, "missing or unreadable image")
