@@ -110,11 +110,13 @@ class EvaluateConfig:
 
 
 def load_estimator(spec: str, kind: str, backend: str = "auto-float",
-                   max_points: int | None = None):
+                   max_points: int | None = None, refiner=None):
     """:meth:`Estimator.load` of ``spec`` ('pretrained': the shipped weights of ``kind``),
-    checked to be of ``kind``; the error names the flag that takes the other kind."""
+    checked to be of ``kind``; the error names the flag that takes the other kind.
+    ``refiner``: a loaded placement refiner or None, given at load time so that ``"auto"``'s
+    check of the backend runs with it (the refined graphs, issue 47)."""
     est = Estimator.load(kind if spec == "pretrained" else spec, backend=backend,
-                         max_points=max_points, refiner="none")  # build_estimators sets it
+                         max_points=max_points, refiner=refiner)
     if est.kind != kind:
         other = "baseline" if kind == "sequential" else "sequential"
         flag = "--baseline" if kind == "sequential" else "--checkpoint"
@@ -189,12 +191,11 @@ def mode_note(path: Path, modes: dict) -> None:
 def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfig) -> dict:
     """The methods to score: the sequential model (offline when asked), the baseline, and the
     box fit when ``cfg.boxfit`` (None: for real datasets)."""
-    estimators = {"sequential": load_estimator(checkpoint, "sequential", cfg.backend,
-                                               cfg.max_points),
-                  "baseline": load_estimator(baseline, "baseline", cfg.backend, cfg.max_points)}
     refiner = load_refiner(cfg.refiner)
-    for est in estimators.values():
-        est.refiner = refiner
+    estimators = {"sequential": load_estimator(checkpoint, "sequential", cfg.backend,
+                                               cfg.max_points, refiner),
+                  "baseline": load_estimator(baseline, "baseline", cfg.backend, cfg.max_points,
+                                             refiner)}
     estimators["sequential"].smoothing = cfg.smoothing
     if cfg.offline:
         estimators["sequential"] = OfflineEstimator(estimators["sequential"])
