@@ -442,6 +442,7 @@ def track_cases(tmp: Path, rng) -> Iterator[Case]:
         # (a link to /dev/null leaves the dataset folder: refused naming the manifest, as
         # before)
         yield from special_files(ds.path / "tracks" / f"{name}.npz", run, 30, ("fifo", "folder"))
+    yield from special_files(mpath, run, 10, ("fifo", "folder"))
     good_manifest = mpath.read_bytes()
 
     def renamed(rng):
@@ -457,7 +458,7 @@ def track_cases(tmp: Path, rng) -> Iterator[Case]:
         doc["tracks"][i]["file"] = f"tracks/{doc['tracks'][j]['track_id']}.npz"
         mpath.write_text(json.dumps(doc))
         return run, ds.path / doc["tracks"][i]["file"], "holds track"
-    for _ in range(105):
+    for _ in range(100):
         yield Case("manifest id renamed", renamed, _restore(mpath, good_manifest))
         yield Case("manifest entry pointing at another track's file", swapped,
                    _restore(mpath, good_manifest))
