@@ -46,6 +46,9 @@ MARGIN = 0.5
 MIN_POINTS = 20
 #: Frames that must have seen a face before it counts.
 MIN_FRAMES = 2
+#: Percentiles of a frame's points along each axis that bound the box from below (inside the
+#: outermost points: a tracker's crop holds stray returns of the ground and its neighbours).
+OBSERVED_PERCENTILES = (1.0, 99.0)
 #: Shortest extent (m) the step will set (a vehicle is no thinner).
 MIN_EXTENT = 0.5
 
@@ -122,7 +125,7 @@ def _bounds(points, poses, idx, lo, hi, anchor, margin, min_points, min_frames, 
             continue
         local = sensor_to_canonical(pts, poses[t])[:, :2]
         sensor = sensor_to_canonical(np.zeros((1, 3)), poses[t])[0, :2]
-        first, last = np.percentile(local, SHAPE_PERCENTILES, axis=0)
+        first, last = np.percentile(local, OBSERVED_PERCENTILES, axis=0)
         seen_lo.append(first)
         seen_hi.append(last)
         for a in range(2):
