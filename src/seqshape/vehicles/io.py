@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from seqshape._io import check_regular
 from seqshape.errors import ConfigError, DataError
 from seqshape.vehicles.base import Vehicle, centre_on_bbox, safe_id
 
@@ -61,8 +62,9 @@ def _read_mesh(path: Path) -> trimesh.Trimesh:
     infinite vertices, coordinates so large that areas overflow, and degenerate meshes: no
     face of non-zero area, or no extent along one of the axes (a flat mesh: zero height...).
     """
-    if not path.is_file():
+    if not path.exists():
         raise DataError(path, "no such file")
+    check_regular(path, "mesh file", "mesh")  # a FIFO, a folder: refused, never opened
     if path.stat().st_size == 0:
         raise DataError(path, "file is empty")
     if path.suffix.lower() == ".obj":
