@@ -475,20 +475,24 @@ def test_heading_filter_gets_each_frames_points_and_class_online_and_in_online_m
     seen = []
     update = heading_mod.HeadingFilter.update
 
-    def spy(self, pose, ego, has_points, points=None, cls=None):
-        seen.append((None if points is None else len(points), cls))
-        return update(self, pose, ego, has_points, points, cls)
+    def spy(self, pose, ego, has_points, points=None, cls=None, time=None):
+        seen.append((None if points is None else len(points), cls, time))
+        return update(self, pose, ego, has_points, points, cls, time)
 
     monkeypatch.setattr(heading_mod.HeadingFilter, "update", spy)
     est = _estimator()
     points, egos = _track()
+    times = 0.1 * np.arange(len(points))
     for t in range(len(points)):
-        est.step(["t"], [points[t]], classes=["car"], ego_poses=[egos[t]])
+        est.step(["t"], [points[t]], classes=["car"], ego_poses=[egos[t]],
+                 timestamps=[times[t]])
     stepped, seen[:] = list(seen), []
-    estimate_track(est, points, ego_poses=egos, mode="online", track_id="t", cls="car")
+    estimate_track(est, points, ego_poses=egos, timestamps=times, mode="online",
+                   track_id="t", cls="car")
     assert seen == stepped and len(seen) == len(points)
-    assert [n for n, _ in seen] == [min(len(p), CFG.num_points) for p in points]
-    assert {c for _, c in seen} == {"car"}
+    assert [n for n, _, _ in seen] == [min(len(p), CFG.num_points) for p in points]
+    assert {c for _, c, _ in seen} == {"car"}
+    np.testing.assert_allclose([s for _, _, s in seen], times)  # the holes' clock
 
 
 @pytest.mark.parametrize("online", [True, False])

@@ -210,3 +210,26 @@ def test_offline_track_with_a_hole_stays_near_its_estimates():
                            on[part])
         np.testing.assert_allclose(off[part], want, atol=1e-6)
     assert math.isfinite(off.sum())
+
+
+def test_heading_filter_forgets_its_evidence_after_a_hole():
+    """The online heading step starts afresh after a hole over MAX_GAP (as a new filter fed
+    the frames after it), and keeps its evidence across a shorter one."""
+    from seqshape.model.heading import HeadingConfig, HeadingFilter
+
+    times = _hole_times()
+    truth, est, egos = _drive(times, seed=4)
+    est[20:, 3] += math.pi  # after the hole the estimates point backwards
+    cfg = HeadingConfig()
+    whole, fresh = HeadingFilter(cfg), HeadingFilter(cfg)
+    got = [whole.update(est[t], egos[t], True, time=times[t]) for t in range(50)]
+    want = [fresh.update(est[t], egos[t], True, time=times[t]) for t in range(20, 50)]
+    assert got[20:] == want
+    blind = HeadingFilter(cfg)  # without times the hole is not seen: the old evidence stays
+    flips = [blind.update(est[t], egos[t], True) for t in range(50)]
+    assert flips[20:] != want
+    short = HeadingFilter(cfg)
+    t2 = np.arange(50) * 0.1
+    t2[20:] += MAX_GAP - 0.15
+    kept = [short.update(est[t], egos[t], True, time=t2[t]) for t in range(50)]
+    assert kept == flips

@@ -624,7 +624,7 @@ class Estimator:
 
     def _fix_headings(self, result: list[Estimate], states: list[_TrackState],
                       ego_poses: Sequence | None, frames: list[np.ndarray],
-                      classes: Sequence | None) -> None:
+                      classes: Sequence | None, timestamps: Sequence | None = None) -> None:
         """The heading post-processing (:mod:`seqshape.model.heading`), in place."""
         for i, (est, st) in enumerate(zip(result, states, strict=True)):
             ego = _ego_pose(ego_poses, i)
@@ -633,7 +633,8 @@ class Estimator:
             if st.heading is None:
                 st.heading = HeadingFilter(self.heading)
             cls = None if classes is None or not classes[i] else str(classes[i])
-            if st.heading.update(est.pose, ego, est.num_points > 0, frames[i], cls):
+            if st.heading.update(est.pose, ego, est.num_points > 0, frames[i], cls,
+                                 _timestamp(timestamps, i)):
                 est.pose[3] = wrap_angle(est.pose[3] + np.pi)
                 est.flipped = True
 
@@ -702,7 +703,7 @@ class Estimator:
             if scale is not None:
                 result[-1].scale = float(scale[i])
         if ego_poses is not None or self.heading.active_without_poses:
-            self._fix_headings(result, states, ego_poses, frames, classes)
+            self._fix_headings(result, states, ego_poses, frames, classes, timestamps)
         if self.smoothing == "causal":
             self._smooth(result, states, ego_poses, timestamps)
         return result

@@ -51,6 +51,7 @@ import numpy as np
 
 from seqshape.errors import ConfigError
 from seqshape.geometry import sensor_to_canonical
+from seqshape.model.smooth import MAX_GAP
 
 
 @dataclass(frozen=True)
@@ -268,20 +269,35 @@ def shape_allowed(cls: str | None) -> bool:
 class HeadingFilter:
     """One track's heading evidence; :meth:`update` says whether to flip this frame's yaw."""
 
-    def __init__(self, cfg: HeadingConfig):
+    def __init__(self, cfg: HeadingConfig, max_gap: float = MAX_GAP):
         self.cfg = cfg
-        self.positions: deque[tuple[float, float]] = deque(maxlen=int(cfg.motion_frames))
+        self.max_gap = float(max_gap)
+        self.last_detection: float | None = None  # time (s) of the last frame with points
+        self._forget()
+
+    def _forget(self) -> None:
+        """Drop the track's heading evidence (a new segment of the track starts)."""
+        self.positions: deque[tuple[float, float]] = deque(maxlen=int(self.cfg.motion_frames))
         self.vote = np.zeros(2)
-        self.profile = EndProfile() if cfg.shape else None
+        self.profile = EndProfile() if self.cfg.shape else None
         self.axis: float | None = None  # the track's axis (a yaw, either end) in the fixed frame
         self.moved = False  # motion has decided on some frame of the track
 
     def update(self, pose: np.ndarray, ego_pose: np.ndarray | None, has_points: bool,
-               points: np.ndarray | None = None, cls: str | None = None) -> bool:
+               points: np.ndarray | None = None, cls: str | None = None,
+               time: float | None = None) -> bool:
         """Feed this frame's raw estimate ``pose`` (x, y, z, yaw) in the sensor frame;
         ``ego_pose`` (4, 4) sensor -> fixed frame (None: none given); ``points`` (N, 3) this
         frame's observed points in the sensor frame (None: the shape step is skipped);
-        ``cls`` the vehicle class hint. Returns True when the yaw is to be flipped by pi."""
+        ``cls`` the vehicle class hint; ``time`` (s) the frame's timestamp (None: unknown).
+        A detection more than ``max_gap`` seconds after the previous one starts the evidence
+        afresh (the smoothers' segment rule, :func:`seqshape.model.smooth.track_segments`: a
+        track lost and found may be another vehicle, or the same one turned). Returns True
+        when the yaw is to be flipped by pi."""
+        if has_points and time is not None:
+            if self.last_detection is not None and time - self.last_detection > self.max_gap:
+                self._forget()
+            self.last_detection = float(time)
         cfg = self.cfg
         fixed = ego_pose is not None or cfg.static_sensor
         yaw = float(pose[3])

@@ -611,7 +611,8 @@ def _finish(estimator, p: _Track, complete: np.ndarray, poses: np.ndarray,
         if flips is not None:
             flip = bool(flips[t])
         elif filt is not None and (ego is not None or heading.active_without_poses):
-            flip = filt.update(est.pose, ego, est.num_points > 0, p.frames[t], p.cls)
+            flip = filt.update(est.pose, ego, est.num_points > 0, p.frames[t], p.cls,
+                               None if p.times is None else float(p.times[t]))
         else:
             flip = False
         if flip:
