@@ -78,6 +78,27 @@ def test_track_segments_split_at_holes_and_jumps():
     assert track_segments(gap, valid).tolist() == [0] * 6 + [1] * 2
 
 
+def test_segment_rule_catches_a_switch_to_the_next_lane_not_noise_or_braking():
+    """A vehicle 3.5 m to the side under the same id (the next lane) starts a segment; a
+    track's noisy estimates (0.3 m) over 60 s, and a car braking at 7 m/s^2, do not."""
+    rng = np.random.default_rng(0)
+    times = np.arange(600) * 0.1
+    centres = np.c_[15.0 * times, np.zeros(600)] + rng.normal(0, 0.3, (600, 2))
+    assert track_segments(times, np.ones(600, bool), centres).max() == 0
+    switched = centres.copy()
+    switched[300:, 1] += 3.5
+    seg = track_segments(times, np.ones(600, bool), switched)
+    assert seg[299] == 0 and seg[300] == 1 and seg.max() == 1
+    t = np.arange(40) * 0.1
+    braking = np.c_[20.0 * t - 3.5 * t ** 2, np.zeros(40)]  # 20 m/s to a stop in 2.9 s
+    braking[29:, 0] = braking[28, 0]
+    assert track_segments(t, np.ones(40, bool), braking).max() == 0
+    # holes within MAX_GAP keep the segment; the prediction spans them
+    holes = np.ones(600, bool)
+    holes[100:108] = False
+    assert track_segments(times, holes, centres).max() == 0
+
+
 def test_limit_shift_puts_back_far_frames_with_points_only():
     poses = np.zeros((3, 4))
     smoothed = np.array([[0.3, 0, 0, 0.1], [MAX_SHIFT + 0.1, 0, 0, 0.2], [5.0, 0, 0, 0.0]])

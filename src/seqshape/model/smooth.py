@@ -322,34 +322,95 @@ def frame_numbers(times, n: int) -> np.ndarray:
     return np.maximum.accumulate(f - np.arange(n)) + np.arange(n)  # strictly increasing
 
 
+#: Hardest acceleration (m/s^2) :class:`SegmentRule` allows a vehicle between detections.
+MAX_ACCEL = 8.0
+#: Seconds of a segment's past over which :class:`SegmentRule` measures its velocity.
+VELOCITY_SPAN = 0.5
+
+
+class SegmentRule:
+    """Where a track's segments start, detection by detection (:func:`track_segments` over a
+    whole track, :class:`CausalSmoother` online).
+
+    A detection starts a new segment when it comes more than ``max_gap`` seconds after the
+    previous one, or when its planar centre in a fixed frame is further from where the
+    segment's motion puts it than ``margin`` plus what an acceleration of ``MAX_ACCEL`` and a
+    1 m/s error of the measured velocity allow: the velocity comes from the segment's
+    detections over the last ``VELOCITY_SPAN`` seconds; before a segment has two detections the
+    centre may have moved ``max_speed * dt`` instead. A vehicle under the same id that is not
+    where the track was going (a tracker's identity switch, even to the next lane) starts a new
+    segment. Without times one ``period`` per detection; without centres (no fixed frame) or
+    with ``max_speed=inf`` only holes count.
+    """
+
+    def __init__(self, max_gap: float = MAX_GAP, max_speed: float = MAX_SPEED,
+                 margin: float = JUMP_MARGIN, period: float = 0.1):
+        self.max_gap, self.max_speed, self.margin = float(max_gap), float(max_speed), \
+            float(margin)
+        self.period = float(period)
+        self._recent: deque = deque()  # (time, centre) of the segment's latest detections
+        self._clock = 0.0  # time of the last detection when times are unknown
+
+    def step(self, time: float | None, centre) -> bool:
+        """Feed one detection (``time`` s or None, ``centre`` (2,) in a fixed frame or None);
+        True when it starts a new segment (the first detection of a track does not)."""
+        t = self._clock + self.period if time is None else float(time)
+        c = None if centre is None else np.asarray(centre, dtype=np.float64)[:2]
+        new = False
+        if self._recent:
+            t0, c0 = self._recent[-1]
+            dt = t - t0
+            if time is not None and dt > self.max_gap:
+                new = True
+            elif c is not None and c0 is not None:
+                new = float(np.linalg.norm(c - self._predict(t))) > self._allowed(dt)
+        if new:
+            self._recent.clear()
+        self._recent.append((t, c))
+        while len(self._recent) > 2 and self._recent[-1][0] - self._recent[1][0] \
+                >= VELOCITY_SPAN:
+            self._recent.popleft()
+        self._clock = t
+        return new
+
+    def _predict(self, t: float) -> np.ndarray:
+        """Where the segment's motion puts the centre at time ``t``."""
+        t1, c1 = self._recent[-1]
+        t0, c0 = self._recent[0]
+        if len(self._recent) < 2 or c0 is None or t1 - t0 <= 0:
+            return c1
+        return c1 + (c1 - c0) / (t1 - t0) * (t - t1)
+
+    def _allowed(self, dt: float) -> float:
+        """Metres a detection ``dt`` seconds on may lie from the prediction."""
+        dt = max(dt, 0.0)
+        if not math.isfinite(self.max_speed):  # max_speed=inf: no jump test
+            return math.inf
+        if len(self._recent) < 2 or self._recent[0][1] is None:
+            return self.max_speed * dt + self.margin
+        return self.margin + 0.5 * MAX_ACCEL * dt ** 2 + 1.0 * dt
+
+
 def track_segments(times, valid, centres=None, max_gap: float = MAX_GAP,
                    max_speed: float = MAX_SPEED, margin: float = JUMP_MARGIN,
                    period: float = 0.1) -> np.ndarray:
-    """``(T,)`` segment number of each frame of a track: a detection (a ``valid`` frame) more
-    than ``max_gap`` seconds after the previous one, or whose estimated planar centre
-    (``centres (T, 2)`` in a fixed frame, or None: no jump test) is more than ``max_speed *
-    dt + margin`` metres from the previous detection's, starts a new segment; a frame without
-    points belongs to the segment of the detection before it. ``times (T,)`` in seconds, or
-    None: one ``period`` per frame.
+    """``(T,)`` segment number of each frame of a track by :class:`SegmentRule` (a hole longer
+    than ``max_gap`` seconds, or a detection whose centre is not where the segment was going);
+    a frame without points belongs to the segment of the detection before it. ``times (T,)``
+    in seconds, or None: one ``period`` per frame; ``centres (T, 2)`` planar centres in a
+    fixed frame, or None (no jump test).
 
     >>> track_segments([0.0, 0.1, 0.2, 5.0, 5.1], [True] * 5).tolist()
     [0, 0, 0, 1, 1]
     """
     valid = np.asarray(valid, dtype=bool).reshape(-1)
-    n = len(valid)
-    t = np.arange(n) * period if times is None else np.asarray(times, np.float64).reshape(-1)
-    seg = np.zeros(n, dtype=np.int64)
-    last, current = None, 0
-    for i in range(n):
-        if valid[i] and last is not None:
-            dt = float(t[i] - t[last])
-            jump = centres is not None and float(np.linalg.norm(
-                np.asarray(centres[i][:2]) - np.asarray(centres[last][:2]))) \
-                > max_speed * max(dt, 0.0) + margin
-            if dt > max_gap or jump:
-                current += 1
-        if valid[i]:
-            last = i
+    rule = SegmentRule(max_gap, max_speed, margin, period)
+    seg = np.zeros(len(valid), dtype=np.int64)
+    current = 0
+    for i in range(len(valid)):
+        if valid[i] and rule.step(None if times is None else float(times[i]),
+                                  None if centres is None else centres[i]):
+            current += 1
         seg[i] = current
     return seg
 
@@ -690,7 +751,8 @@ class CausalSmoother:
         self.max_speed, self.max_shift = float(max_speed), float(max_shift)
         self.detections = 0  # the track's detections (the frame weights' ramp counts them)
         self.segments = 0  # segments started after the first (gaps, jumps)
-        self._last: tuple[float | None, np.ndarray | None] | None = None  # last detection
+        self._rule = SegmentRule(self.max_gap, self.max_speed)  # where segments start
+        self._last_detection: float | None = None  # time (s) of the last frame with points
         self._steps: deque = deque(maxlen=16)  # the track's first time steps (s)
         self._start_segment()
 
@@ -718,19 +780,12 @@ class CausalSmoother:
                  rate_hz: float) -> float:
         """This frame's number; starts a new segment first when the frame is a detection too
         long after the last one or too far from it (:func:`track_segments`' rule)."""
-        centre = pose[:3] if ego is None else ego[:3, :3] @ pose[:3] + ego[:3, 3]
-        if has_points and self._last is not None:
-            last_time, last_centre = self._last
-            known = time is not None and last_time is not None
-            dt = time - last_time if known else None
-            jump = ego is not None and last_centre is not None and float(np.linalg.norm(
-                centre[:2] - last_centre[:2])) > self.max_speed * (
-                    dt if dt is not None else 1.0 / rate_hz) + JUMP_MARGIN
-            if (dt is not None and dt > self.max_gap) or jump:
+        if has_points:
+            centre = None if ego is None else (ego[:3, :3] @ pose[:3] + ego[:3, 3])[:2]
+            if self._rule.step(time, centre):
                 self._start_segment()
                 self.segments += 1
-        if has_points:
-            self._last = (time, None if ego is None else centre)
+            self._last_detection = time
         if not self._frames:
             return 0.0
         previous = self._times[-1]
@@ -790,8 +845,8 @@ class CausalSmoother:
                                  weights=np.asarray(self._weights))[-1]
         if has_points:
             out = limit_shift(out[None], pose[None], max_shift=self.max_shift)[0]
-        elif time is not None and self._last is not None and self._last[0] is not None \
-                and time - self._last[0] > self.max_gap:
+        elif time is not None and self._last_detection is not None \
+                and time - self._last_detection > self.max_gap:
             return pose.copy()  # a fit is carried no further than MAX_GAP from a detection
         if self.keep_front and abs(wrap_angle(out[3] - pose[3])) > math.pi / 2:
             out[3] = wrap_angle(out[3] + math.pi)  # the front stays the estimate's
