@@ -123,12 +123,23 @@ INT8_LAYERS = ("shape_decoder",)
 #: also the encoder's per-point layers after the split one (``mlp2_rest``; 61 % of the
 #: encoder's multiply-adds with the ``small`` preset), 1.4-1.6x the float32 throughput of 100
 #: live tracks. Every per-point product of the encoder would add 3 % more and move yaws twice
-#: as far (docs/history/model.md, "Fifth round: the encoder in int8").
+#: as far (docs/history/model.md, "Fifth round: the encoder in int8"). Measured and not kept
+#: (issue 47, 2026-12-07): the per-point half of the split layer too (``mlp2_split``, the
+#: graph's largest float32 product, 28 % of a 57-track pass's kernel time; inputs on one scale
+#: per point): a pass of 64 tracks x 256 points with the refiner 35-40 -> 28-29 ms on one
+#: thread, 100 live tracks without the refiner 1.4x, and within :data:`INT8_NOISE`'s bound on
+#: :func:`car_stream` seeds 0-2, but the shipped baseline with the refiner failed it on seed 5
+#: (24 tracks, 3 steps): too near the bound for ``"auto"`` to keep choosing int8 everywhere.
 INT8_STEP_LAYERS = ("shape_decoder", "mlp2_rest")
 #: The refiner's layers ``"onnx-int8"`` quantises in the refined batch graph
 #: (:class:`RefinedStepGraph`): its last per-point layer (57 % of its multiply-adds), in the
-#: encoder's form (one scale per track over all its points).
-INT8_REFINER_LAYERS = ("refiner_rest",)
+#: encoder's form (one scale per track over all its points), and the per-point half of its
+#: split layer (28 %; one scale per point). Measured with the shipped weights and refiner,
+#: :func:`car_stream` seeds 0, 1, 2 and 5 (means of the seeds' p50 / p90: worst shape point,
+#: centre, yaw), every seed within :data:`INT8_NOISE`'s bound: sequential 1.46 / 3.39 cm,
+#: 0.46 / 1.24 cm, 0.08 / 0.42 deg (bound 2.71 / 8.41, 1.13 / 3.42, 0.19 / 1.27); baseline
+#: 2.09 / 5.49, 0.61 / 1.64, 0.12 / 0.74 (bound 3.98 / 19.75, 1.47 / 5.37, 0.26 / 2.77).
+INT8_REFINER_LAYERS = ("refiner_rest", "refiner_split")
 #: ONNX opset of the export.
 ONNX_OPSET = 17
 #: Agreement of a fast backend with the reference: shape points (m), pose centre (m), yaw
@@ -171,11 +182,14 @@ def split_first_layer(first: nn.Linear, c: int) -> tuple[torch.Tensor, ...]:
     return w[:, :c].contiguous(), w[:, c:].contiguous(), first.bias.detach().clone()
 
 
-def split_pointnet(x: torch.Tensor, mlp1: nn.Module, wx: torch.Tensor, wg: torch.Tensor,
+def split_pointnet(x: torch.Tensor, mlp1: nn.Module, wx: torch.Tensor | nn.Module,
+                   wg: torch.Tensor,
                    b: torch.Tensor, rest: nn.Module | None) -> torch.Tensor:
     """Features (B, F) of a two-stage PointNet (``mlp1`` -> max-pool g -> [x, g] -> second MLP
     -> max-pool) on points (B, N, C) whose padded rows are copies; the second MLP's first layer
-    given split (:func:`split_first_layer`), ``rest`` its layers after the ReLU (None: none).
+    given split (:func:`split_first_layer`; ``wx`` the per-point half, a tensor or a bias-free
+    ``nn.Linear``, which names its product in the export for int8, :func:`_split_layer`),
+    ``rest`` its layers after the ReLU (None: none).
 
     The per-point layers run on (B * N, C) matrices, so that ONNX Runtime fuses their biases
     and ReLUs into the matrix products (Gemm / FusedGemm nodes). The network's encoder
@@ -183,10 +197,21 @@ def split_pointnet(x: torch.Tensor, mlp1: nn.Module, wx: torch.Tensor, wg: torch
     n_b, n, c = x.shape
     x = mlp1(x.reshape(n_b * n, c))  # (B * N, C1)
     g = x.reshape(n_b, n, -1).amax(dim=1)  # (B, C1)
-    y = F.linear(x, wx).reshape(n_b, n, -1) + F.linear(g, wg, b).unsqueeze(1)
+    xw = wx(x) if isinstance(wx, nn.Module) else F.linear(x, wx)  # a module: named layer
+    y = xw.reshape(n_b, n, -1) + F.linear(g, wg, b).unsqueeze(1)
     if rest is not None:
         y = rest(torch.relu(y).reshape(n_b * n, -1))
     return y.reshape(n_b, n, -1).amax(dim=1)  # (B, F)
+
+
+def _split_layer(w: torch.Tensor) -> nn.Linear:
+    """A bias-free ``nn.Linear`` holding ``w`` (the per-point half of a split first layer,
+    :func:`split_first_layer`), so that its product carries the layer's name in the exported
+    graph and :func:`~seqshape.model.int8.quantize_onnx` can pick it."""
+    layer = nn.Linear(w.shape[1], w.shape[0], bias=False)
+    with torch.no_grad():
+        layer.weight.copy_(w)
+    return layer.requires_grad_(False)
 
 
 class StepGraph(nn.Module):
@@ -207,6 +232,7 @@ class StepGraph(nn.Module):
         self.register_buffer("w2x", w2x)
         self.register_buffer("w2g", w2g)
         self.register_buffer("b2", b2)
+        self.mlp2_split = _split_layer(w2x)  # the same weights as a layer (int8 by name)
         self.mlp2_rest = enc.mlp2[2:] if len(enc.mlp2) > 1 else None
         self.fusion, self.skip = model.fusion, model.skip
         if self.recurrent:
@@ -218,7 +244,8 @@ class StepGraph(nn.Module):
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         """Frame features (B, F) of demeaned points (B, N, C) whose padded rows are copies
         (:func:`split_pointnet`)."""
-        return split_pointnet(x, self.mlp1, self.w2x, self.w2g, self.b2, self.mlp2_rest)
+        return split_pointnet(x, self.mlp1, self.mlp2_split, self.w2g, self.b2,
+                              self.mlp2_rest)
 
     def gru(self, f: torch.Tensor, m: torch.Tensor | None, h: torch.Tensor) -> torch.Tensor:
         """``nn.GRUCell`` on ``[f, m]`` spelled out (PyTorch's gate order r, z, n)."""
@@ -444,6 +471,7 @@ class _Refined:
         self.register_buffer("refiner_wx", wx)
         self.register_buffer("refiner_wg", wg)
         self.register_buffer("refiner_b", b)
+        self.refiner_split = _split_layer(wx)
         self.refiner_rest = net.mlp2[2:] if len(net.mlp2) > 1 else None
         self.size_head = net.head[-1].out_features >= 6
         self.scale_ref, self.scale_max = SCALE_REF, SCALE_MAX
@@ -487,9 +515,12 @@ class _Refined:
         d = torch.clamp(rng, min=1e-6)
         cond = torch.stack([ext[:, 0] / s, ext[:, 1] / s, ext[:, 2] / s, sx / d, sy / d,
                             torch.log1p(rng) / 4.0, torch.log1p(count) / 7.0, s / 4.0], dim=1)
-        pool = one_track_pointnet if one_track else split_pointnet
-        y = pool(xyz, self.refiner_mlp1, self.refiner_wx, self.refiner_wg, self.refiner_b,
-                 self.refiner_rest)
+        if one_track:
+            y = one_track_pointnet(xyz, self.refiner_mlp1, self.refiner_wx, self.refiner_wg,
+                                   self.refiner_b, self.refiner_rest)
+        else:
+            y = split_pointnet(xyz, self.refiner_mlp1, self.refiner_split, self.refiner_wg,
+                               self.refiner_b, self.refiner_rest)
         out = self.refiner_head(torch.cat([y, cond], dim=1))
         lim = limits
         shift = out[:, :3] * s.unsqueeze(1)
