@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 from _model_data import box_track
+from test_engine import _cloud  # the sensor-side half of a box: the engine tests' clouds
 
 from seqshape.errors import ConfigError
 from seqshape.model import Estimator, ModelConfig, ShapePoseNet
@@ -24,7 +25,6 @@ from seqshape.model import placement as P
 from seqshape.model.engine import INT8_NOISE, TOLERANCE, car_stream
 from seqshape.model.estimator import check_backend, deviations, noise_quantiles
 from seqshape.model.heading import wrap_angle
-from seqshape.testing import box_surface
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
@@ -55,12 +55,6 @@ def _refiner(seed: int = 0, outputs: int = 6, **config) -> P.PlacementRefiner:
 def _net(seed: int = 0, **options) -> ShapePoseNet:
     torch.manual_seed(seed)
     return ShapePoseNet(dataclasses.replace(CFG, **options)).eval()
-
-
-def _cloud(rng, n: int, pose) -> np.ndarray:
-    pts = box_surface(2 * n + 2, rng, pose=pose, dtype=np.float32)
-    near = np.linalg.norm(pts[:, :2], axis=1) <= np.linalg.norm(pose[:2])
-    return pts[near][:n]
 
 
 def _steps(seed: int, n_tracks: int = 9, n_steps: int = 6, num_points: int = 32) -> list[dict]:
