@@ -784,6 +784,7 @@ class CausalSmoother:
         long after the last one or too far from it (:func:`track_segments`' rule)."""
         if has_points:
             centre = None if ego is None else (ego[:3, :3] @ pose[:3] + ego[:3, 3])[:2]
+            self._rule.period = 1.0 / rate_hz  # the time per frame when there are no times
             if self._rule.step(time, centre):
                 self._start_segment()
                 self.segments += 1
