@@ -139,6 +139,10 @@ def main() -> None:
     if args.worker:
         worker(args)
         return
+    if not (args.kitti or args.av2 or args.tracks):
+        print("bm_readers: no --kitti, --av2 or --tracks given; real data is not part of the "
+              "repository, so there is nothing to measure (see the docstring for the command)")
+        return
     argv = ["--repeats", str(args.repeats)]
     for key in ("kitti", "av2", "tracks"):
         if getattr(args, key):
