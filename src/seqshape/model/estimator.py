@@ -53,6 +53,7 @@ import torch
 
 from seqshape.data.windows import points_lengths, resample_frame
 from seqshape.errors import ConfigError, DataError
+from seqshape.model.causal import update_estimates
 from seqshape.model.config import ModelConfig
 from seqshape.model.engine import (
     AUTO_ORDERS,
@@ -711,12 +712,15 @@ class Estimator:
     def _smooth(self, result: list[Estimate], states: list[_TrackState],
                 ego_poses: Sequence | None, timestamps: Sequence | None) -> None:
         """``smoothing="causal"``: each estimate replaced by its track's causal fit (in place;
-        the complete shape moves rigidly with the pose)."""
-        for i, (est, st) in enumerate(zip(result, states, strict=True)):
+        the complete shape moves rigidly with the pose), all tracks in one vectorised pass
+        (:func:`~seqshape.model.causal.update_estimates`)."""
+        for st in states:
             if st.smoother is None:
                 st.smoother = CausalSmoother()
-            st.smoother.update_estimate(est, _ego_pose(ego_poses, i), _timestamp(timestamps, i),
-                                        1.0 / self.frame_period)
+        update_estimates([st.smoother for st in states], result,
+                         [_ego_pose(ego_poses, i) for i in range(len(result))],
+                         [_timestamp(timestamps, i) for i in range(len(result))],
+                         1.0 / self.frame_period)
 
 
 def _refiner(spec: Any):

@@ -809,6 +809,24 @@ class CausalSmoother:
         (s; the frame rate for the smoother's speed threshold comes from the remembered
         times, else ``rate_hz``) and how many points it had (``num_points``: its weight in
         the fits, :func:`frame_weights`; None: as many as count fully)."""
+        pose, ego, time, smooth = self._record(pose, has_points, ego, time, rate_hz,
+                                               num_points)
+        if not smooth:
+            return pose.copy()
+        egos, rate_hz = self._fit_setup(rate_hz)
+        out = smooth_track_poses(np.stack(self._poses), np.asarray(self._frames), egos,
+                                 rate_hz=rate_hz, window=self.window,
+                                 valid=np.asarray(self._valid),
+                                 local_fit=self._local_fit,
+                                 weights=np.asarray(self._weights))[-1]
+        return self._finish(out, pose, has_points, time)
+
+    def _record(self, pose, has_points: bool, ego, time: float | None, rate_hz: float,
+                num_points: int | None) -> tuple[np.ndarray, np.ndarray | None, float | None,
+                                                 bool]:
+        """:meth:`update`'s bookkeeping of a new frame (its number, segment, weight; the
+        arguments checked): ``(pose, ego, time, smooth)`` as arrays and floats, ``smooth``
+        whether the frame's estimate is replaced by a fit (else it is returned as it is)."""
         if num_points is not None and (isinstance(num_points, bool) or not isinstance(
                 num_points, int | np.integer) or num_points < 0):
             raise ConfigError(f"CausalSmoother.update num_points must be a whole number >= 0 "
@@ -831,8 +849,12 @@ class CausalSmoother:
         self._weights.append(float(_weights(np.array([n if has_points else 0.0]),
                                             np.array([self.detections]), self.full_points,
                                             self.ramp)[0]))
-        if self.segment_detections < self.min_frames or not any(self._valid):
-            return pose.copy()
+        smooth = self.segment_detections >= self.min_frames and any(self._valid)
+        return pose, ego, time, smooth
+
+    def _fit_setup(self, rate_hz: float) -> tuple[np.ndarray | None, float]:
+        """``(egos (T, 4, 4) or None, rate_hz)`` of the fit over the history: the ego poses when
+        every remembered frame has one, the frame rate from the remembered times."""
         egos = None if any(e is None for e in self._egos) else np.stack(self._egos)
         times = np.asarray(self._times)
         if len(times) > 1 and np.all(np.isfinite(times)):
@@ -841,11 +863,13 @@ class CausalSmoother:
         if self._fixed is not (egos is not None):  # another frame: no kept fit holds
             self._fits.clear()
             self._fixed = egos is not None
-        out = smooth_track_poses(np.stack(self._poses), np.asarray(self._frames), egos,
-                                 rate_hz=rate_hz, window=self.window,
-                                 valid=np.asarray(self._valid),
-                                 local_fit=self._local_fit,
-                                 weights=np.asarray(self._weights))[-1]
+        return egos, rate_hz
+
+    def _finish(self, out: np.ndarray, pose: np.ndarray, has_points: bool,
+                time: float | None) -> np.ndarray:
+        """The fit's value ``out`` of the newest frame (estimate ``pose``) as :meth:`update`
+        returns it: within ``max_shift`` of a detection, no further than ``max_gap`` from one,
+        the front the estimate's (``keep_front``)."""
         if has_points:
             out = limit_shift(out[None], pose[None], max_shift=self.max_shift)[0]
         elif time is not None and self._last_detection is not None \
@@ -896,18 +920,23 @@ class CausalSmoother:
         (:func:`average_shapes`, causal, with the frames' weights)."""
         new = self.update(est.pose, est.num_points > 0, ego, time, rate_hz, est.num_points)
         if self.shape_decay is not None:
-            # the decoder's frame: a heading flip turned the yaw by pi and kept the shape
-            own = np.array(est.pose, dtype=np.float64)
-            own[3] = wrap_angle(own[3] + (math.pi if getattr(est, "flipped", False) else 0.0))
-            canonical = sensor_to_canonical(np.asarray(est.complete, dtype=np.float64), own)
-            if self._shape_sum is None or self._shape_sum.shape != canonical.shape:
-                self._shape_sum, self._shape_mass = np.zeros_like(canonical), 0.0
-            self._shape_sum, self._shape_mass = _decay_step(
-                self._shape_sum, self._shape_mass, canonical, self._weights[-1],
-                self.shape_decay ** self._step)
-            if self._shape_mass > 0:  # the average, where the decoder would have placed it
-                est.complete = canonical_to_sensor(self._shape_sum / self._shape_mass,
-                                                   own).astype(np.float32)
+            self._average_shape(est)
         if not np.array_equal(new, est.pose):  # moved rigidly with the smoothed pose
             est.complete = place_shapes(est.complete[None], est.pose[None], new[None])[0]
             est.pose = new
+
+    def _average_shape(self, est) -> None:
+        """The estimate's shape replaced by the track's shape average so far, in place
+        (:meth:`update_estimate`, after :meth:`update` of the frame)."""
+        # the decoder's frame: a heading flip turned the yaw by pi and kept the shape
+        own = np.array(est.pose, dtype=np.float64)
+        own[3] = wrap_angle(own[3] + (math.pi if getattr(est, "flipped", False) else 0.0))
+        canonical = sensor_to_canonical(np.asarray(est.complete, dtype=np.float64), own)
+        if self._shape_sum is None or self._shape_sum.shape != canonical.shape:
+            self._shape_sum, self._shape_mass = np.zeros_like(canonical), 0.0
+        self._shape_sum, self._shape_mass = _decay_step(
+            self._shape_sum, self._shape_mass, canonical, self._weights[-1],
+            self.shape_decay ** self._step)
+        if self._shape_mass > 0:  # the average, where the decoder would have placed it
+            est.complete = canonical_to_sensor(self._shape_sum / self._shape_mass,
+                                               own).astype(np.float32)
