@@ -41,12 +41,15 @@ from seqshape.model.smooth import (
     CausalSmoother,
     _axial,
     _decay_step,
-    place_shapes,
 )
 
 #: Parameters of :func:`~seqshape.model.smooth.smooth_track_poses` the causal smoother uses
 #: (its defaults): min_travel, min_speed, line_tolerance, line_sigmas.
 MIN_TRAVEL, MIN_SPEED, LINE_TOLERANCE, LINE_SIGMAS = 3.0, 1.0, 0.05, 1.7
+#: Bytes of float64 shapes :func:`_update_shapes` transforms at a time: below glibc's mmap
+#: threshold (128 KiB), so that its arrays are reused from the heap rather than page-faulted
+#: in anew on every step (measured: a step of 90 tracks' 1024 points 4.6 -> 1.4 ms).
+SHAPE_CHUNK_BYTES = 100_000
 #: Largest ``det`` of a window's normal equations scaled to a unit diagonal below which
 #: :func:`_robust_fits` solves that window by the pseudo-inverse instead.
 ILL_CONDITIONED = 1e-9
@@ -57,6 +60,8 @@ def update_estimates(smoothers: Sequence[CausalSmoother], estimates: Sequence,
     """``smoothers[i].update_estimate(estimates[i], egos[i], times[i], rate_hz)`` for every
     track of a step, in place, with one vectorised fit of all the tracks that are smoothed
     (module doc). ``egos[i]``: (4, 4) or None; ``times[i]``: seconds or None."""
+    if not len(smoothers):
+        return
     ready, news = [], [None] * len(smoothers)
     for i, (sm, est) in enumerate(zip(smoothers, estimates, strict=True)):
         pose, ego, time, smooth = sm._record(est.pose, est.num_points > 0, egos[i], times[i],
@@ -73,8 +78,7 @@ def update_estimates(smoothers: Sequence[CausalSmoother], estimates: Sequence,
         out = smooth_newest(subset, [sm._fit_setup(rate_hz) for sm in subset], window)
         for (i, pose, time), value in zip(items, out, strict=True):
             news[i] = smoothers[i]._finish(value, pose, estimates[i].num_points > 0, time)
-    _average_shapes(smoothers, estimates)
-    _place(estimates, news)
+    _update_shapes(smoothers, estimates, news)
 
 
 def smooth_newest(smoothers: Sequence[CausalSmoother], setups: Sequence[tuple],
@@ -83,7 +87,7 @@ def smooth_newest(smoothers: Sequence[CausalSmoother], setups: Sequence[tuple],
     history (before :meth:`CausalSmoother._finish`), ``setups[k]`` its ``(egos, rate_hz)``
     (:meth:`CausalSmoother._fit_setup`)."""
     h = _Histories(smoothers, setups)
-    pos, vel = _local_fits(h, window)
+    pos, vel = _kept_local_fits(h, smoothers, window)
     k_all = np.arange(h.k)
     first = np.argmax(h.valid, axis=1)  # (K,) the first and last valid columns
     last = h.t.shape[1] - 1 - np.argmax(h.valid[:, ::-1], axis=1)
@@ -153,11 +157,43 @@ class _Histories:
         self.w = matrix_to_pose(e @ pose_to_matrix(poses))
         self.e_last = e[:, -1]
         self.rate = np.array([r for _, r in setups], dtype=np.float64)
+        # the local fits kept from earlier steps (CausalSmoother._kept) and what the history
+        # has dropped since they were made
+        self.kept = np.zeros((self.k, t_max), bool)
+        self.kept[rows, cols] = np.concatenate([sm._kept[:n] for sm, n in
+                                                zip(smoothers, lens, strict=True)])
+        self.kept_fit = np.zeros((self.k, t_max, 2, 3))
+        self.kept_fit[rows, cols] = np.concatenate([sm._kept_fit[:n] for sm, n in
+                                                    zip(smoothers, lens, strict=True)])
+        self.dropped = np.array([sm._dropped for sm in smoothers], dtype=np.float64)
 
 
-def _local_fits(h: _Histories, window: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(pos, vel)``, each ``(K, T, 3)``: ``_local_fit(tv, y, window, ITERATIONS, SCALE,
-    query=t, prior=prior)`` of every track's valid positions at every frame (0 at padding)."""
+def _kept_local_fits(h: _Histories, smoothers: Sequence[CausalSmoother], window: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_local_fits` of every frame, taking the fits kept from earlier steps whose
+    window is unchanged and keeping the final ones (``CausalSmoother._local_fit``'s rule: a
+    fit is final once a frame ``window`` frames newer exists, until the history drops a frame
+    of its window; with at least two samples in its own window)."""
+    whole = h.t - window > h.dropped[:, None]  # no frame of the window dropped
+    usable = h.kept & whole
+    pos, vel, lonely = _local_fits(h, window, h.present & ~usable)
+    pos = np.where(usable[..., None], h.kept_fit[:, :, 0], pos)
+    vel = np.where(usable[..., None], h.kept_fit[:, :, 1], vel)
+    final = h.present & whole & ~lonely & (h.t + window <= h.t[:, -1:])
+    fits = np.stack([pos, vel], axis=2)  # (K, T, 2, 3)
+    t_max = h.t.shape[1]
+    for k, sm in enumerate(smoothers):
+        n = len(sm._frames)
+        sm._kept[:n], sm._kept_fit[:n] = final[k, t_max - n:], fits[k, t_max - n:]
+    return pos, vel
+
+
+def _local_fits(h: _Histories, window: int, todo: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(pos, vel, lonely)``: ``(K, T, 3)`` ``_local_fit(tv, y, window, ITERATIONS, SCALE,
+    query=t, prior=prior)`` of every track's valid positions at the frames ``todo (K, T)``
+    (0 elsewhere), and ``(K, T)`` whether a frame has fewer than two samples within its
+    window (it takes its nearest sample's)."""
     k, t_max = h.t.shape
     cols = np.arange(t_max)
     centre = np.broadcast_to(cols, (k, t_max))
@@ -171,7 +207,7 @@ def _local_fits(h: _Histories, window: int) -> tuple[np.ndarray, np.ndarray]:
         ta = np.take_along_axis(h.t, np.minimum(after, t_max - 1), axis=1)
         prev = (before >= 0) & ((after >= t_max) | (h.t - tb <= ta - h.t))  # ties: earlier
         centre = np.where(lonely, np.where(prev, before, after), centre)
-    rows = np.flatnonzero(h.present.ravel())
+    rows = np.flatnonzero(todo.ravel())
     centre_t = np.take_along_axis(h.t, centre, axis=1)
     inside, slots = _window(h, centre, centre_t, window)
     kk = np.repeat(np.arange(k), t_max)[rows]
@@ -186,7 +222,7 @@ def _local_fits(h: _Histories, window: int) -> tuple[np.ndarray, np.ndarray]:
                               np.where(inside, h.prior[kk[:, None], slots], 0.0), deg, 2)
     pos, vel = np.zeros((k * t_max, 3)), np.zeros((k * t_max, 3))
     pos[rows], vel[rows] = val, slope
-    return pos.reshape(k, t_max, 3), vel.reshape(k, t_max, 3)
+    return pos.reshape(k, t_max, 3), vel.reshape(k, t_max, 3), lonely
 
 
 def _window(h: _Histories, centre: np.ndarray, centre_t: np.ndarray, window: int
@@ -384,54 +420,62 @@ def _axial_mean(angles: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return wrap_angle(np.where(2 * forward >= mask.sum(axis=1), axis, axis + math.pi))
 
 
-def _average_shapes(smoothers: Sequence[CausalSmoother], estimates: Sequence) -> None:
-    """The shape average of :meth:`CausalSmoother.update_estimate` for every track with a
-    ``shape_decay`` (in place), the frame transforms of all tracks at once."""
-    todo = [i for i, sm in enumerate(smoothers) if sm.shape_decay is not None]
-    if not todo:
+def _update_shapes(smoothers: Sequence[CausalSmoother], estimates: Sequence,
+                   news: Sequence[np.ndarray]) -> None:
+    """What :meth:`CausalSmoother.update_estimate` does to the shapes after the poses, for
+    every track (in place): the track's shape average (with a ``shape_decay``: the canonical
+    shapes' decayed sums, ``CausalSmoother._average_shape``) placed where the decoder would
+    have put it, then moved rigidly with the smoothed pose ``news[i]``
+    (:func:`~seqshape.model.smooth.place_shapes`), the two transforms composed into one
+    (float32 out: equal to the two steps' to its rounding). The transforms are computed for
+    all tracks at once, the shapes in groups of :data:`SHAPE_CHUNK_BYTES`."""
+    if len({np.shape(est.complete) for est in estimates}) > 1:
+        for sm, est, new in zip(smoothers, estimates, news, strict=True):
+            sm._apply(est, new)  # shapes of several sizes: one track at a time
         return
-    shapes = [np.asarray(estimates[i].complete, dtype=np.float64) for i in todo]
-    if len({s.shape for s in shapes}) > 1:
-        for i in todo:  # shapes of several sizes: one track at a time
-            smoothers[i]._average_shape(estimates[i])
-        return
-    own = np.array([estimates[i].pose for i in todo], dtype=np.float64)
-    flips = np.array([getattr(estimates[i], "flipped", False) for i in todo])
+    k = len(estimates)
+    pose = np.array([est.pose for est in estimates], dtype=np.float64)  # (K, 4)
+    new = np.array(news, dtype=np.float64)
+    rot = np.broadcast_to(np.eye(3), (k, 3, 3)).copy()  # (K, 3, 3): placed = src @ rot + off
+    off = np.zeros((k, 3))
+    avg = np.array([sm.shape_decay is not None for sm in smoothers])
+    own = pose.copy()  # the decoder's frame: a flip turned the yaw, not the shape
+    flips = np.array([bool(getattr(est, "flipped", False)) for est in estimates])
     own[:, 3] = wrap_angle(own[:, 3] + np.where(flips, math.pi, 0.0))
-    rot = yaw_to_rotmat(own[:, 3])  # (K, 3, 3)
-    canonical = (np.stack(shapes) - own[:, None, :3]) @ rot  # (K, N, 3) float64
-    mean = np.empty_like(canonical)
-    has = np.zeros(len(todo), bool)
-    for j, i in enumerate(todo):
-        sm = smoothers[i]
-        if sm._shape_sum is None or sm._shape_sum.shape != canonical[j].shape:
-            sm._shape_sum, sm._shape_mass = np.zeros_like(canonical[j]), 0.0
-        sm._shape_sum, sm._shape_mass = _decay_step(
-            sm._shape_sum, sm._shape_mass, canonical[j], sm._weights[-1],
-            sm.shape_decay ** sm._step)
-        if sm._shape_mass > 0:
-            mean[j], has[j] = sm._shape_sum / sm._shape_mass, True
-    if has.any():
-        placed = (mean[has] @ np.swapaxes(rot[has], 1, 2) + own[has, None, :3]
-                  ).astype(np.float32)
-        for j, i in enumerate(np.asarray(todo)[has]):
-            estimates[i].complete = placed[j]
-
-
-def _place(estimates: Sequence, news: Sequence[np.ndarray]) -> None:
-    """The smoothed poses ``news`` into the estimates, each complete shape moved rigidly with
-    its pose (:func:`~seqshape.model.smooth.place_shapes`, all moved tracks at once)."""
-    moved = [i for i, (est, new) in enumerate(zip(estimates, news, strict=True))
-             if not np.array_equal(new, est.pose)]
-    if not moved:
-        return
-    shapes = [np.asarray(estimates[i].complete) for i in moved]
-    if len({s.shape for s in shapes}) > 1:
-        placed = [place_shapes(s[None], estimates[i].pose[None], news[i][None])[0]
-                  for s, i in zip(shapes, moved, strict=True)]
-    else:
-        placed = place_shapes(np.stack(shapes), np.array([estimates[i].pose for i in moved]),
-                              np.array([news[i] for i in moved]))
-    for j, i in enumerate(moved):
-        estimates[i].complete = placed[j]
+    r_own = yaw_to_rotmat(own[:, 3])
+    decay = np.array([sm.shape_decay ** sm._step if a else 0.0
+                      for sm, a in zip(smoothers, avg, strict=True)])
+    mass = np.array([(decay[i] * sm._shape_mass if sm._shape_sum is not None else 0.0)
+                     + sm._weights[-1] if avg[i] else 0.0 for i, sm in enumerate(smoothers)])
+    mean = avg & (mass > 0)  # the average, placed with the decoder's pose
+    rot[mean], off[mean] = np.swapaxes(r_own[mean], 1, 2), own[mean, :3]
+    moved = ~np.all(pose == new, axis=1)
+    if moved.any():  # then from the estimate's pose (its front nearer the new yaw) to the new
+        mine = pose[moved].copy()
+        turn = np.abs(wrap_angle(mine[:, 3] - new[moved, 3])) > math.pi / 2
+        mine[turn, 3] = wrap_angle(mine[turn, 3] + math.pi)
+        step = yaw_to_rotmat(mine[:, 3]) @ np.swapaxes(yaw_to_rotmat(new[moved, 3]), 1, 2)
+        rot[moved] = rot[moved] @ step
+        off[moved] = ((off[moved] - mine[:, :3])[:, None, :] @ step)[:, 0] + new[moved, :3]
+    size = 3 * 8 * max(1, int(np.prod(np.shape(estimates[0].complete)[:-1])))
+    chunk = max(1, SHAPE_CHUNK_BYTES // size)
+    for lo in range(0, k, chunk):
+        part = slice(lo, lo + chunk)
+        src = np.stack([np.asarray(est.complete, dtype=np.float64)
+                        for est in estimates[part]])  # (C, N, 3) sensor frame
+        if avg[part].any():
+            canonical = (src - own[part, None, :3]) @ r_own[part]
+            for j in np.flatnonzero(avg[part]):
+                sm = smoothers[lo + j]
+                if sm._shape_sum is None or sm._shape_sum.shape != canonical[j].shape:
+                    sm._shape_sum, sm._shape_mass = np.zeros_like(canonical[j]), 0.0
+                sm._shape_sum, sm._shape_mass = _decay_step(
+                    sm._shape_sum, sm._shape_mass, canonical[j], sm._weights[-1],
+                    decay[lo + j])
+                if mean[lo + j]:
+                    src[j] = sm._shape_sum / sm._shape_mass
+        placed = (src @ rot[part] + off[part, None, :]).astype(np.float32)
+        for j in np.flatnonzero(avg[part] | moved[part]):
+            estimates[lo + j].complete = placed[j]
+    for i in np.flatnonzero(moved):
         estimates[i].pose = news[i]

@@ -777,6 +777,10 @@ class CausalSmoother:
         # were made in (True: the ego poses', False: the sensor's)
         self._fits: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._fixed: bool | None = None
+        # the same for the vectorised path (seqshape.model.causal), by place in the history:
+        # whether a frame's (position, velocity) fit is kept, and the fit
+        self._kept = np.zeros(self.history, bool)
+        self._kept_fit = np.zeros((self.history, 2, 3))
 
     def _advance(self, pose: np.ndarray, has_points: bool, ego, time: float | None,
                  rate_hz: float) -> float:
@@ -838,6 +842,8 @@ class CausalSmoother:
         self._step = frame - self._frames[-1] if self._frames else 1.0
         if len(self._frames) == self.history:  # the oldest frame leaves the history
             self._dropped = self._frames[0]
+            self._kept[:-1], self._kept[-1] = self._kept[1:], False
+            self._kept_fit[:-1] = self._kept_fit[1:]
         self._frames.append(frame)
         self._poses.append(pose.copy())
         self._valid.append(bool(has_points))
@@ -856,12 +862,14 @@ class CausalSmoother:
         """``(egos (T, 4, 4) or None, rate_hz)`` of the fit over the history: the ego poses when
         every remembered frame has one, the frame rate from the remembered times."""
         egos = None if any(e is None for e in self._egos) else np.stack(self._egos)
-        times = np.asarray(self._times)
-        if len(times) > 1 and np.all(np.isfinite(times)):
-            step = float(np.median(np.diff(times)))
+        times = np.fromiter(self._times, np.float64, len(self._times))
+        if len(times) > 1 and np.isfinite(times).all():
+            steps = np.sort(np.diff(times))  # their median (numpy's, without its overhead)
+            step = float((steps[(len(steps) - 1) // 2] + steps[len(steps) // 2]) / 2)
             rate_hz = 1.0 / step if step > 0 else rate_hz
         if self._fixed is not (egos is not None):  # another frame: no kept fit holds
             self._fits.clear()
+            self._kept[:] = False
             self._fixed = egos is not None
         return egos, rate_hz
 
@@ -918,7 +926,11 @@ class CausalSmoother:
         replaced by the smoothed one and the complete shape moved rigidly with it; with
         ``shape_decay``, the shape replaced first by the track's shape average so far
         (:func:`average_shapes`, causal, with the frames' weights)."""
-        new = self.update(est.pose, est.num_points > 0, ego, time, rate_hz, est.num_points)
+        self._apply(est, self.update(est.pose, est.num_points > 0, ego, time, rate_hz,
+                                     est.num_points))
+
+    def _apply(self, est, new: np.ndarray) -> None:
+        """The estimate given its smoothed pose ``new`` (:meth:`update_estimate`), in place."""
         if self.shape_decay is not None:
             self._average_shape(est)
         if not np.array_equal(new, est.pose):  # moved rigidly with the smoothed pose
