@@ -91,15 +91,18 @@ def points_lengths(frames: Sequence[np.ndarray]) -> np.ndarray:
     if not len(ok):
         return out
     n = counts[ok]
-    pts = np.concatenate([frames[i] for i in ok])
+    pts = frames[ok[0]] if len(ok) == 1 else np.concatenate([frames[i] for i in ok])
     # (8, P) projections as two products and a sum per entry: no fused multiply-add whose use
     # would depend on the shape of a matrix product; laid out for per-frame sorts
     proj = np.multiply.outer(_COS32, pts[:, 0])
     proj += np.multiply.outer(_SIN32, pts[:, 1])
-    batch = np.full((len(ok), 8, int(n.max())), np.inf, dtype=np.float32)
-    ends = np.cumsum(n)
-    for k, (e, m) in enumerate(zip(ends.tolist(), n.tolist(), strict=True)):
-        batch[k, :, :m] = proj[:, e - m:e]
+    if len(ok) == 1:  # one frame (a single-track step): no padding
+        batch = proj[None]
+    else:
+        batch = np.full((len(ok), 8, int(n.max())), np.inf, dtype=np.float32)
+        ends = np.cumsum(n)
+        for k, (e, m) in enumerate(zip(ends.tolist(), n.tolist(), strict=True)):
+            batch[k, :, :m] = proj[:, e - m:e]
     batch.sort(axis=2)  # the padding (inf) after each frame's own values
     ext = []
     rows = np.arange(len(ok))
