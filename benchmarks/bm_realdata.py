@@ -46,6 +46,8 @@ METHODS = ("sequential", "baseline", "boxfit")
 MODES = ("online", "causal", "offline")
 #: Detections-so-far bins of the table (inclusive ranges; None: no upper end).
 BINS = ((1, 1), (2, 3), (4, 8), (9, 16), (17, None))
+#: Range bins (m, [lo, hi)) of the radial-bias-by-range table.
+RANGES = ((0.0, 15.0), (15.0, 30.0), (30.0, None))
 #: Annotated centre travel (m, fixed frame) under which a track counts as parked.
 PARKED_M = 1.0
 #: Rotation error (deg) above which a frame counts as a 180-degree flip (as ``evaluate``).
@@ -77,12 +79,14 @@ def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> No
 
 def evaluate(data: Path, out: Path, checkpoint: str, split: str,
              baseline: str = "pretrained", refiner: str = "pretrained",
-             mode: str = "online", reuse: bool = False) -> Path:
+             mode: str = "online", reuse: bool = False,
+             baseline_refiner: str = "same") -> Path:
     """``seqshape evaluate`` of one mode into ``out``; returns its ``per_frame.csv``."""
     if reuse and (out / "per_frame.csv").exists():
         return out / "per_frame.csv"
     argv = ["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
-            "--baseline", baseline, "--refiner", refiner, "--split", split, "--workers", "1",
+            "--baseline", baseline, "--refiner", refiner, "--baseline-refiner", baseline_refiner,
+            "--split", split, "--workers", "1",
             "--emd-every", "0", "--view", "none"]
     argv += {"online": [], "causal": ["--smoothing", "causal"], "offline": ["--offline"]}[mode]
     if _quiet(argv) != 0:
@@ -119,7 +123,7 @@ def read_frames(path: Path) -> dict[str, dict[str, np.ndarray]]:
         for r in csv.DictReader(f):
             c = cols.setdefault(r["method"], {k: [] for k in (
                 "centre", "radial", "tangential", "yaw", "length", "width", "cd", "n_det",
-                "track", "cls")})
+                "track", "cls", "distance")})
 
             def num(key, scale=1.0, r=r):
                 v = r.get(key, "")
@@ -134,6 +138,7 @@ def read_frames(path: Path) -> dict[str, dict[str, np.ndarray]]:
             c["n_det"].append(int(r["n_det"]))
             c["track"].append(r["track_id"])
             c["cls"].append(r.get("class", ""))
+            c["distance"].append(num("distance_m"))
     return {m: {k: np.asarray(v) for k, v in c.items()} for m, c in cols.items()}
 
 
@@ -149,6 +154,10 @@ def _mean(x):
 
 def _in_bin(n_det: np.ndarray, lo: int, hi: int | None) -> np.ndarray:
     return (n_det >= lo) & (n_det <= (hi if hi is not None else np.iinfo(np.int64).max))
+
+
+def _in_range(d: np.ndarray, lo: float, hi: float | None) -> np.ndarray:
+    return (d >= lo) & (d < (hi if hi is not None else np.inf))
 
 
 def _bias_split(c: dict[str, np.ndarray], use: np.ndarray) -> dict:
@@ -185,6 +194,9 @@ def summarise(rows: dict[str, dict[str, np.ndarray]], parked: dict[str, bool]) -
             "length_med": _med(c["length"]), "width_med": _med(c["width"]),
             "cd_mean": _mean(c["cd"]),
             "bins": [_med(c["centre"][_in_bin(c["n_det"], lo, hi)]) for lo, hi in BINS],
+            "range_radial": [_med(c["radial"][_in_range(c["distance"], lo, hi)])
+                             for lo, hi in RANGES],
+            "range_frames": [int(_in_range(c["distance"], lo, hi).sum()) for lo, hi in RANGES],
             "bin_frames": [int(_in_bin(c["n_det"], lo, hi).sum()) for lo, hi in BINS],
             "from9_med": _med(c["centre"][c["n_det"] >= 9]),
             **_bias_split(c, c["n_det"] >= 9),
@@ -202,7 +214,8 @@ def run_source(name: str, dataset: str, root: Path, work: Path, args) -> dict | 
     rows: dict[str, dict[str, np.ndarray]] = {}
     for mode in args.modes:
         per_frame = evaluate(data, work / f"eval_{mode}", args.checkpoint, "all",
-                             args.baseline, args.refiner, mode, args.reuse)
+                             args.baseline, args.refiner, mode, args.reuse,
+                             args.baseline_refiner)
         frames = read_frames(per_frame)
         rows[f"sequential {mode}"] = frames["sequential"]
         if mode == args.modes[0]:  # the baseline and the box fit do not change with the mode
@@ -229,6 +242,13 @@ def print_source(name: str, s: dict) -> None:
     print(f"\nmedian centre error (cm) by detections so far ({name}; frames in brackets)\n")
     print_table(["method"] + labels,
                 [[m] + [f"{_f(b)} ({n})" for b, n in zip(v["bins"], v["bin_frames"],
+                                                        strict=True)]
+                 for m, v in s.items()])
+    print(f"\nmedian radial error (cm, + = too far from the sensor) by range ({name}; "
+          f"frames in brackets)\n")
+    print_table(["method"] + [f"{lo:.0f}-{hi:.0f} m" if hi else f"{lo:.0f}+ m"
+                              for lo, hi in RANGES],
+                [[m] + [f"{_f(b)} ({n})" for b, n in zip(v["range_radial"], v["range_frames"],
                                                         strict=True)]
                  for m, v in s.items()])
     print(f"\nfrom the 9th detection ({name}): each track's radial bias (median over tracks), "
@@ -272,7 +292,8 @@ def finetune(dataset: str, root: Path, work: Path, args) -> None:
         rows = {}
         for label, ckpt in (("before", args.checkpoint), ("after", str(run / "model.pt"))):
             frames = read_frames(evaluate(work / "ft_tracks", work / f"ft_eval_{split}_{label}",
-                                          ckpt, split, args.baseline, args.refiner))
+                                          ckpt, split, args.baseline, args.refiner,
+                                          baseline_refiner=args.baseline_refiner))
             rows[f"sequential {label}"] = frames["sequential"]
             rows.setdefault("baseline", frames["baseline"])
         print_source(f"fine-tuning, {'held-out vehicles' if split == 'val' else 'all vehicles'}",
@@ -296,6 +317,9 @@ def main() -> int:
     ap.add_argument("--baseline", default="pretrained", help="baseline model to evaluate")
     ap.add_argument("--refiner", default="pretrained",
                     help="placement refiner of both networks: a file, 'pretrained' or 'none'")
+    ap.add_argument("--baseline-refiner", default="same",
+                    help="the baseline's own refiner when not --refiner's ('same'): a file, "
+                         "'pretrained' or 'none'")
     ap.add_argument("--finetune-steps", type=int, default=0,
                     help="also fine-tune the sequential model this many stage-3 steps on the "
                          "logs' own references and evaluate again (0: no)")
@@ -313,7 +337,9 @@ def main() -> int:
     for name, dataset, root in sources:
         summary[name] = run_source(name, dataset, root, work / name, args)
         print_source(f"{name} ({dataset}: {args.checkpoint} / {args.baseline} weights, "
-                     f"refiner {args.refiner})", summary[name])
+                     f"refiner {args.refiner}"
+                     + (f", baseline's {args.baseline_refiner}"
+                        if args.baseline_refiner != "same" else "") + ")", summary[name])
         if args.finetune_steps > 0:
             finetune(dataset, root, work / name, args)
     (work / "summary.json").write_text(json.dumps(summary, indent=1))

@@ -282,7 +282,10 @@ def test_evaluate_with_a_refiner_file(tmp_path):
                                                                           "baseline")
     _shift_refiner(dx=0.4).save(tmp_path / "r.pt")
     runs = {}
-    for name, extra in (("plain", []), ("refined", ["--refiner", str(tmp_path / "r.pt")])):
+    for name, extra in (("plain", []), ("refined", ["--refiner", str(tmp_path / "r.pt")]),
+                        ("none", ["--refiner", "none"]),
+                        ("seq only", ["--refiner", str(tmp_path / "r.pt"),
+                                      "--baseline-refiner", "none"])):
         out = tmp_path / name
         assert main(["evaluate", "--data", str(data.path), "--checkpoint", seq, "--baseline",
                      base, "--out", str(out), "--emd-every", "0", "--workers", "0", "--view",
@@ -293,6 +296,11 @@ def test_evaluate_with_a_refiner_file(tmp_path):
     for m in ("sequential", "baseline"):  # every estimate moved 0.4 m along its axis
         assert runs["refined"][m]["trans_cm"] != runs["plain"][m]["trans_cm"]
         assert runs["refined"][m]["cd_cm"] != runs["plain"][m]["cd_cm"]
+    # --baseline-refiner none: the baseline keeps its own placement, the sequential model not
+    assert runs["seq only"]["settings"]["modes"] == {
+        "sequential": "offline + placement refiner", "baseline": "online"}
+    assert runs["seq only"]["baseline"]["trans_cm"] == runs["none"]["baseline"]["trans_cm"]
+    assert runs["seq only"]["sequential"]["trans_cm"] == runs["refined"]["sequential"]["trans_cm"]
     assert main(["evaluate", "--data", str(data.path), "--checkpoint", seq, "--baseline", base,
                  "--out", str(tmp_path / "x"), "--refiner", str(tmp_path / "nope.pt")]) == 1
 

@@ -66,6 +66,10 @@ class EvaluateConfig:
     refiner: placement refiner of both networks (seqshape.model.placement): 'pretrained' (the
         shipped one, trained on the shipped networks' estimates), a refiner file, or 'none' (the
         networks' own placement).
+    baseline_refiner: the per-frame baseline's refiner when it is not ``refiner``'s ('same',
+        the default: the one refiner for both; else as ``refiner``), e.g. a refiner trained on
+        the sequential model's estimates alone (``seqshape train-refiner --baseline none``)
+        with the shipped one for the baseline.
     max_points: the most points of a frame fed to each network (a seeded subset of a larger
         frame; None: the model's own num_points). Fewer is faster and less accurate
         (docs/model.md, "Fewer points per frame").
@@ -91,6 +95,7 @@ class EvaluateConfig:
     hints: bool = True
     backend: str = "auto-float"
     refiner: str = "pretrained"
+    baseline_refiner: str = "same"
     max_points: int | None = None
     smoothing: str = "none"
 
@@ -192,10 +197,12 @@ def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfi
     """The methods to score: the sequential model (offline when asked), the baseline, and the
     box fit when ``cfg.boxfit`` (None: for real datasets)."""
     refiner = load_refiner(cfg.refiner)
+    base_refiner = refiner if cfg.baseline_refiner == "same" else \
+        load_refiner(cfg.baseline_refiner)
     estimators = {"sequential": load_estimator(checkpoint, "sequential", cfg.backend,
                                                cfg.max_points, refiner),
                   "baseline": load_estimator(baseline, "baseline", cfg.backend, cfg.max_points,
-                                             refiner)}
+                                             base_refiner)}
     estimators["sequential"].smoothing = cfg.smoothing
     if cfg.offline:
         estimators["sequential"] = OfflineEstimator(estimators["sequential"])
