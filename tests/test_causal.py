@@ -73,6 +73,23 @@ def _same_shape(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.all(np.abs(a - b) <= 1e-6 + 3e-7 * np.abs(a)))
 
 
+def _step_both(ref: list, new: list, row: list) -> list[tuple[int, _Est, _Est]]:
+    """One step of the tracks of ``row`` (:func:`_tracks`) through the reference smoothers
+    ``ref`` one by one and through ``new`` with :func:`update_estimates`: per track in the
+    step, (track, reference estimate, new estimate)."""
+    live = [k for k in range(len(row)) if row[k] is not None]
+    a, b = [], []
+    for k in live:
+        pose, complete, n, flipped, ego, t = row[k]
+        for out in (a, b):
+            out.append(_Est(pose.copy(), complete.copy(), n))
+            out[-1].flipped = flipped
+        ref[k].update_estimate(a[-1], ego, t, 10.0)
+    update_estimates([new[k] for k in live], b, [row[k][4] for k in live],
+                     [row[k][5] for k in live], 10.0)
+    return list(zip(live, a, b, strict=True))
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_update_estimates_equals_the_per_track_smoother(seed):
     """Every step's smoothed poses and shapes equal the reference's: 1e-6 m and rad, shape
@@ -83,17 +100,7 @@ def test_update_estimates_equals_the_per_track_smoother(seed):
     new = [CausalSmoother() for _ in range(n_tracks)]
     smoothed = 0
     for s, row in enumerate(steps):
-        live = [k for k in range(n_tracks) if row[k] is not None]
-        a, b = [], []
-        for k in live:
-            pose, complete, n, flipped, ego, t = row[k]
-            for out in (a, b):
-                out.append(_Est(pose.copy(), complete.copy(), n))
-                out[-1].flipped = flipped
-            ref[k].update_estimate(a[-1], ego, t, 10.0)
-        update_estimates([new[k] for k in live], b, [row[k][4] for k in live],
-                         [row[k][5] for k in live], 10.0)
-        for k, x, y in zip(live, a, b, strict=True):
+        for k, x, y in _step_both(ref, new, row):
             smoothed += not np.array_equal(x.pose, row[k][0])
             assert np.abs(x.pose[:3] - y.pose[:3]).max() <= 1e-6, (s, k, x.pose, y.pose)
             assert abs(wrap_angle(x.pose[3] - y.pose[3])) <= 1e-6, (s, k, x.pose, y.pose)
@@ -144,18 +151,9 @@ def test_update_estimates_with_shapes_of_several_sizes_and_no_shape_average():
     ref = [CausalSmoother(shape_decay=None if k % 2 else 0.9) for k in range(6)]
     new = [CausalSmoother(shape_decay=None if k % 2 else 0.9) for k in range(6)]
     for row in steps:
-        live = [k for k in range(6) if row[k] is not None]
-        a, b = [], []
-        for k in live:
-            pose, complete, n, flipped, ego, t = row[k]
-            complete = complete[:8] if k == 0 else complete
-            for out in (a, b):
-                out.append(_Est(pose.copy(), complete.copy(), n))
-                out[-1].flipped = flipped
-            ref[k].update_estimate(a[-1], ego, t, 10.0)
-        update_estimates([new[k] for k in live], b, [row[k][4] for k in live],
-                         [row[k][5] for k in live], 10.0)
-        for x, y in zip(a, b, strict=True):
+        row = [None if r is None else (r[0], r[1][:8] if k == 0 else r[1], *r[2:])
+               for k, r in enumerate(row)]
+        for _, x, y in _step_both(ref, new, row):
             assert np.abs(x.pose - y.pose).max() <= 1e-6
             assert _same_shape(x.complete, y.complete)
     update_estimates([], [], [], [], 10.0)  # an empty step
