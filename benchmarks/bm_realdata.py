@@ -94,27 +94,6 @@ def evaluate(data: Path, out: Path, checkpoint: str, split: str,
     return out / "per_frame.csv"
 
 
-def parked_tracks(data: Path) -> dict[str, bool]:
-    """Track id -> parked (annotated centre travel < PARKED_M in the ego poses' fixed frame);
-    tracks without ego poses are left out (unknown)."""
-    from seqshape.data.dataset import read_manifest
-    from seqshape.data.track import load_track
-
-    out = {}
-    for entry in read_manifest(data)["tracks"]:
-        tr = load_track(data / entry["file"])
-        egos = [tr.ego_pose(t) for t in range(len(tr))]
-        if any(e is None for e in egos):
-            continue
-        world = np.array([(e[:3, :3] @ p[:3] + e[:3, 3])[:2]
-                          for e, p in zip(egos, tr.poses, strict=True)])
-        has = tr.num_points > 0
-        if has.any():
-            w = world[has]
-            out[tr.track_id] = float(np.linalg.norm(w.max(0) - w.min(0))) < PARKED_M
-    return out
-
-
 def read_frames(path: Path) -> dict[str, dict[str, np.ndarray]]:
     """``per_frame.csv`` as per-method columns (centre cm, radial cm, yaw deg, |length| cm,
     |width| cm, CD cm, detections so far, track id)."""
@@ -123,7 +102,7 @@ def read_frames(path: Path) -> dict[str, dict[str, np.ndarray]]:
         for r in csv.DictReader(f):
             c = cols.setdefault(r["method"], {k: [] for k in (
                 "centre", "radial", "tangential", "yaw", "length", "width", "cd", "n_det",
-                "track", "cls", "distance")})
+                "track", "cls", "distance", "travel")})
 
             def num(key, scale=1.0, r=r):
                 v = r.get(key, "")
@@ -139,6 +118,7 @@ def read_frames(path: Path) -> dict[str, dict[str, np.ndarray]]:
             c["track"].append(r["track_id"])
             c["cls"].append(r.get("class", ""))
             c["distance"].append(num("distance_m"))
+            c["travel"].append(num("world_travel_m"))
     return {m: {k: np.asarray(v) for k, v in c.items()} for m, c in cols.items()}
 
 
@@ -177,13 +157,15 @@ def _bias_split(c: dict[str, np.ndarray], use: np.ndarray) -> dict:
             "tangential_med": _med(c["tangential"][use])}
 
 
-def summarise(rows: dict[str, dict[str, np.ndarray]], parked: dict[str, bool]) -> dict:
+def summarise(rows: dict[str, dict[str, np.ndarray]]) -> dict:
     """Per method row of the headline table (numbers, None where there are none)."""
     out = {}
     for name, c in rows.items():
         flips = c["yaw"] > FLIP_DEG
-        state = np.array([parked.get(t) for t in c["track"]], dtype=object)
-        mov, par = state == False, state == True  # noqa: E712 (None: unknown)
+        # parked: the annotated centre travels < PARKED_M in the ego poses' fixed frame
+        # (evaluate's world_travel_m; NaN: unknown, neither group)
+        with np.errstate(invalid="ignore"):
+            mov, par = c["travel"] >= PARKED_M, c["travel"] < PARKED_M
         out[name] = {
             "frames": len(c["centre"]), "centre_med": _med(c["centre"]),
             "centre_mean": _mean(c["centre"]), "centre_max": float(np.nanmax(c["centre"])),
@@ -222,7 +204,7 @@ def run_source(name: str, dataset: str, root: Path, work: Path, args) -> dict | 
             for m in ("baseline", "boxfit"):
                 if m in frames:
                     rows[m] = frames[m]
-    return summarise(rows, parked_tracks(data))
+    return summarise(rows)
 
 
 def print_source(name: str, s: dict) -> None:
@@ -287,7 +269,6 @@ def finetune(dataset: str, root: Path, work: Path, args) -> None:
                args.checkpoint, "--stage-steps", f"0,0,{args.finetune_steps}", "--lr", "2e-4",
                "--no-tensorboard", "--threads", "1", "--out", str(run)]) != 0:
         sys.exit("fine-tuning failed")
-    parked = parked_tracks(work / "ft_tracks")
     for split in ("val", "all"):
         rows = {}
         for label, ckpt in (("before", args.checkpoint), ("after", str(run / "model.pt"))):
@@ -297,7 +278,7 @@ def finetune(dataset: str, root: Path, work: Path, args) -> None:
             rows[f"sequential {label}"] = frames["sequential"]
             rows.setdefault("baseline", frames["baseline"])
         print_source(f"fine-tuning, {'held-out vehicles' if split == 'val' else 'all vehicles'}",
-                     summarise(rows, parked))
+                     summarise(rows))
 
 
 def main() -> int:

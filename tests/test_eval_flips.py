@@ -190,3 +190,55 @@ def test_late_over_first_above_the_cd_floor():
     assert ratio["moving"]["cd"] == pytest.approx(0.5)
     assert ratio["moving"]["cd_above_floor"] == pytest.approx(0.05 / 0.25)
     assert ratio["parked"]["cd_above_floor"] == pytest.approx(1.0)
+
+
+def test_world_travel_by_hand():
+    """A car parked at (20, 3) in the fixed frame, seen from an ego driving 1 m per frame along
+    x: 0 m of travel although its sensor-frame distance changes; the same track with the car
+    moving 0.5 m a frame travels 4.5 m (10 frames); without ego poses on a real track: NaN."""
+    from seqshape.evaluation.runner import world_travel
+
+    n = 10
+    egos = [np.eye(4) for _ in range(n)]
+    for k, e in enumerate(egos):
+        e[0, 3] = float(k)  # the sensor at x = k in the fixed frame
+    parked = np.array([[20.0 - k, 3.0, -1.0, 0.1] for k in range(n)])  # in each sensor frame
+    moving = np.array([[20.0 - k + 0.5 * k, 3.0, -1.0, 0.1] for k in range(n)])
+    pts = [np.zeros((5, 3))] * n
+    meta = {"split": "val", "ego_poses": [e.tolist() for e in egos]}
+    times = np.arange(n) * 0.1
+    assert world_travel(Track("p", pts, parked, None, np.ones(3), times, meta)) == \
+        pytest.approx(0.0, abs=1e-12)
+    assert world_travel(Track("m", pts, moving, None, np.ones(3), times, meta)) == \
+        pytest.approx(4.5)
+    parked_nan = parked.copy()
+    parked_nan[3] = np.nan  # an unknown pose is skipped
+    assert world_travel(Track("q", pts, parked_nan, None, np.ones(3), times, meta)) == \
+        pytest.approx(0.0, abs=1e-12)
+    real = Track("r", pts, parked, None, np.ones(3), times, {"split": "val", "source": "real"})
+    assert np.isnan(world_travel(real))
+
+
+def test_passed_group_and_flips_by_group():
+    """"passed": view changing, travel < 1 m in the fixed frame; its flips counted apart."""
+    from seqshape.evaluation.report import GROUP_NAMES, flip_groups, motion_groups
+
+    n = list(range(1, 11))
+    rec = _records({"drive": (n, [10.0 + k for k in n], [0.3] * 10),
+                    "passed": (n, [30.0 - 2 * k for k in n], [0.3] * 10),
+                    "still": (n, [15.0] * 10, [0.3] * 10)})
+    rec["world_travel_m"] = np.repeat([9.0, 0.2, 0.0], 10)
+    rec["rot_rad"] = rec["rot_rad"].copy()
+    rec["rot_rad"][10:13] = np.pi  # three frames of the passed track flipped
+    g = motion_groups(rec)
+    assert list(g) == ["all", "moving", "parked", "passed"]
+    assert g["passed"].sum() == 10 and g["passed"][10:20].all()
+    assert g["moving"].sum() == 20 and g["parked"].sum() == 10
+    flips = flip_groups(rec)
+    assert flips["passed"] == pytest.approx(30.0)
+    assert flips["moving"] == pytest.approx(15.0)
+    assert flips["parked"] == 0.0
+    assert flips["all"] == pytest.approx(10.0)
+    assert set(GROUP_NAMES) >= set(g)
+    del rec["world_travel_m"]  # records of an older version: no passed group
+    assert "passed" not in motion_groups(rec)

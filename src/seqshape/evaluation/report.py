@@ -29,9 +29,11 @@ and absolute tangential translation errors and the signed and absolute length/wi
 Per track and per detection count (issue 19), ``details[method]`` also holds ``"flips"``
 (:func:`seqshape.evaluation.metrics.flip_stats` at :data:`FLIP_DEG`: % of frames flipped, share
 of tracks with any flip, median over tracks of each track's flipped share), ``"by_detections"``
-(``{"all" | "moving" | "parked": {"1" | "2-4" | "5-8" | "9-16" | "17+": {n_frames, n_tracks,
-cd_cm, trans_cm, rot_deg, flip_pct}}}``, frame-pooled means; parked: the true distance from the
-sensor spans less than :data:`PARKED_SPREAD_M`) and ``"late_over_first"`` (``{group: {"cd",
+(``{"all" | "moving" | "passed" | "parked": {"1" | "2-4" | "5-8" | "9-16" | "17+": {n_frames,
+n_tracks, cd_cm, trans_cm, rot_deg, flip_pct}}}``, frame-pooled means; parked: the true distance
+from the sensor spans less than :data:`PARKED_SPREAD_M`; passed: a vehicle parked in the fixed
+frame of the ego poses, seen from a driving ego: :func:`motion_groups`), ``"flip_groups"`` (%
+of frames flipped per group) and ``"late_over_first"`` (``{group: {"cd",
 "trans", "cd_above_floor"}}``: the error at 17+ detections over the error at the first
 detection, over the tracks that have both, each track weighing the same: :func:`late_over_first`;
 the last of the CD minus the track's CD floor). ``metrics.md`` prints
@@ -114,6 +116,9 @@ DETECTION_BINS = (1, 2, 5, 9, 17)
 #: A track whose true distance from the sensor spans less than this (m) over its scored frames
 #: is "parked": the sensor sees one repeated view (a static vehicle and a static sensor).
 PARKED_SPREAD_M = 0.01
+#: A track whose true centre travels less than this (m) in the fixed frame of its ego poses
+#: while its view changes is a parked vehicle passed by a moving ego (the "passed" group).
+PASSED_TRAVEL_M = 1.0
 #: Errors followed by detections so far: report key -> (record column, scale).
 DETECTION_METRICS = {"cd_cm": ("cd_m", 100.0), "trans_cm": ("trans_m", 100.0),
                      "rot_deg": ("rot_rad", 180.0 / math.pi)}
@@ -158,16 +163,20 @@ def method_summary(rec: dict[str, np.ndarray]) -> tuple[dict[str, float | None],
             v = np.abs(v) if absolute else v
             details[key], details[f"{key}_median"] = _mean(v), _median(v)
     details["flips"] = flip_stats(rec["rot_rad"], tracks, FLIP_DEG)
+    if "distance_m" in rec:
+        details["flip_groups"] = flip_groups(rec)
     if "n_det" in rec and "distance_m" in rec:
         details["by_detections"], details["late_over_first"] = detection_summary(rec)
     return table, details
 
 
 def motion_groups(rec: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Frame masks ``{"all", "moving", "parked"}`` over one method's records (empty groups
-    left out). Parked: the track's true distance from the sensor spans less than
-    :data:`PARKED_SPREAD_M` (one repeated view); moving: every other track. With a moving
-    ego (real logs) nearly every track counts as moving: its view changes."""
+    """Frame masks ``{"all", "moving", "parked", "passed"}`` over one method's records (empty
+    groups left out). Parked: the track's true distance from the sensor spans less than
+    :data:`PARKED_SPREAD_M` (one repeated view); moving: every other track (its view changes;
+    with a moving ego, real logs, nearly every track). Passed, a part of moving: the track
+    itself travels less than :data:`PASSED_TRAVEL_M` in the fixed frame of its ego poses
+    (``world_travel_m``): a parked vehicle seen from a driving ego, from changing angles."""
     tracks, dist = rec["track_id"], rec["distance_m"]
     names, which = np.unique(tracks, return_inverse=True)
     lo = np.full(len(names), np.inf)
@@ -177,7 +186,17 @@ def motion_groups(rec: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     np.maximum.at(hi, which[ok], dist[ok])
     parked = (hi - lo < PARKED_SPREAD_M)[which]  # (N,) per frame
     groups = {"all": np.ones(len(tracks), bool), "moving": ~parked, "parked": parked}
+    if "world_travel_m" in rec:  # records of an older version have no travel
+        with np.errstate(invalid="ignore"):
+            groups["passed"] = ~parked & (rec["world_travel_m"] < PASSED_TRAVEL_M)
     return {g: m for g, m in groups.items() if m.any()}
+
+
+def flip_groups(rec: dict[str, np.ndarray]) -> dict[str, float | None]:
+    """% of frames flipped (rotation error above :data:`FLIP_DEG`) in each of
+    :func:`motion_groups`; None where a group has no known rotation."""
+    return {g: flip_stats(rec["rot_rad"][m], rec["track_id"][m], FLIP_DEG)["flip_pct"]
+            for g, m in motion_groups(rec).items()}
 
 
 #: The 17+ over first-detection ratios (:func:`detection_summary`): name -> record column;
@@ -493,6 +512,11 @@ def metrics_markdown(summary: dict[str, Any]) -> str:
                    if "flips" in summary.get("details", {}).get(m, {})]
     if track_flips:
         lines.append("- Flips per track: " + "; ".join(track_flips) + ".")
+    group_flips = [_group_flip_text(m, summary["details"][m]["flip_groups"]) for m in methods
+                   if summary.get("details", {}).get(m, {}).get("flip_groups")]
+    if len(group_flips) and any("passed" in summary["details"][m].get("flip_groups", {})
+                                for m in methods):
+        lines.append("- Flips by track group (% of frames): " + "; ".join(group_flips) + ".")
     lines += detections_markdown(summary.get("details", {}), methods)
     if real:
         lines += _real_notes(s, methods)
@@ -562,6 +586,17 @@ def _flip_text(method: str, d: dict[str, Any]) -> str:
             f"{_fmt(d.get('rot_deg_without_flips'), 'rot_deg')} deg")
 
 
+def _group_flip_text(method: str, groups: dict[str, float | None]) -> str:
+    return f"{method} " + ", ".join(
+        f"{GROUP_NAMES.get(g, g)} {'n/a' if v is None else f'{v:.1f}'}"
+        for g, v in groups.items())
+
+
+#: How the flips line names the motion groups.
+GROUP_NAMES = {"all": "all", "moving": "view changing", "passed": "parked passed by the ego",
+               "parked": "parked, one view"}
+
+
 def _track_flip_text(method: str, f: dict[str, Any]) -> str:
     pct = {k: "n/a" if f.get(k) is None else f"{f[k]:.1f} %"
            for k in ("flip_pct", "tracks_with_flip_pct", "track_flip_median_pct")}
@@ -583,7 +618,7 @@ def detections_markdown(details: dict[str, dict[str, Any]], methods: list[str]) 
              "| tracks | method | frames at 1 / 17+ | " + " | ".join(cols)
              + " | CD 17+/1 | transl. 17+/1 | CD above floor 17+/1 |",
              "|" + "---|" * (len(cols) + 6)]
-    for g in ("all", "moving", "parked"):
+    for g in ("all", "moving", "passed", "parked"):
         for m, group, per in rows:
             if group != g:
                 continue
@@ -595,7 +630,9 @@ def detections_markdown(details: dict[str, dict[str, Any]], methods: list[str]) 
                       for k in ("cd", "trans", "cd_above_floor")]
             lines.append(f"| {g} | {m} | {' / '.join(n)} | " + " | ".join(cells) + " |")
     lines += ["", f"Parked: the true distance from the sensor spans less than "
-                  f"{100 * PARKED_SPREAD_M:g} cm over the track (one repeated view). The bins "
+                  f"{100 * PARKED_SPREAD_M:g} cm over the track (one repeated view); passed (a "
+                  f"part of moving): the vehicle travels less than {PASSED_TRAVEL_M:g} m in the "
+                  f"fixed frame of the ego poses while the ego drives past it. The bins "
                   f"pool their frames (17+ holds only the tracks that reach 17 detections); "
                   f"the ratios compare each track reaching 17+ with its own first detection "
                   f"(mean over those tracks): below 1, the error falls as detections "

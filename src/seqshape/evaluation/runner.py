@@ -39,6 +39,11 @@ What is computed, per method and per scored frame ``t`` of a track:
   encloses the car's own points. ``est_*`` compares methods on the same tracks (a box too far
   from the sensor leaves more points in front); across sets it depends on the point layout as
   much as on the placement;
+* ``world_travel_m``: the track's own travel, the diagonal of the box holding its true centres
+  in the fixed frame of its ego poses (:func:`world_travel`; the same in every frame of
+  the track; NaN for a real track without ego poses). A track that travels less than a metre
+  while its view changes is a parked vehicle passed by a moving ego (the report's "passed"
+  group);
 * ``ref_face_gap_m``: how far the true box's faces lie outside the frame's points
   (:func:`face_gaps`; the larger of the faces seen within 60 degrees of head-on; NaN under
   :data:`FACE_GAP_MIN_POINTS` points). A few cm on a box that holds its vehicle's points; on
@@ -89,7 +94,7 @@ FIELDS = ("method", "track_id", "frame", "n_det", "n_points", "distance_m",
           "cd_m", "emd_m", "trans_m", "rot_rad", "cd_true_pose_m", "class", "radial_m",
           "tangential_m", "rot_axis_rad", "length_err_m", "width_err_m", "ref_to_est_m",
           "est_near_out", "est_far_out", "ref_near_out", "ref_far_out", "length_rel_err",
-          "ref_face_gap_m")
+          "ref_face_gap_m", "world_travel_m")
 _STR_FIELDS = ("method", "track_id", "class")
 _INT_FIELDS = ("frame", "n_det", "n_points")
 #: Percentiles of the estimated cloud's canonical coordinates taken as its extents.
@@ -259,6 +264,7 @@ class _Collector:
 
     def __init__(self, workers: int):
         self.rows: dict[str, list] = {k: [] for k in FIELDS}
+        self._travel: dict[str, float] = {}
         self.pool = None
         if workers > 0:
             # the workers end themselves when this process dies (a kill -9 of evaluate)
@@ -268,6 +274,12 @@ class _Collector:
         self.pending: list[tuple[list[tuple[bool, int]], Future | list[float]]] = []
         self.batch: list[tuple[tuple[bool, int], tuple[np.ndarray, np.ndarray]]] = []
         self.floor_emd: dict[int, float] = {}  # the EMD floors' EMDs (:func:`_floors`)
+
+    def travel(self, track: Track) -> float:
+        """:func:`world_travel` of ``track``, computed once per track id."""
+        if track.track_id not in self._travel:
+            self._travel[track.track_id] = world_travel(track)
+        return self._travel[track.track_id]
 
     def add(self, **row) -> int:
         for k in FIELDS:
@@ -453,6 +465,25 @@ def _ref_face_gap(points: np.ndarray, pose, size) -> float:
     return float(np.nanmax(face_gaps(points, pose, size)))
 
 
+def world_travel(track: Track) -> float:
+    """The track's travel (m): the diagonal of the planar box holding its true centres (frames
+    with a known pose) in the fixed frame of its ego poses (:meth:`Track.ego_pose`); NaN when a
+    frame's ego pose is unknown or no pose is."""
+    centres = []
+    for t in range(len(track)):
+        pose = track.poses[t]
+        if not np.all(np.isfinite(pose)):
+            continue
+        ego = track.ego_pose(t)
+        if ego is None:
+            return np.nan
+        centres.append(ego[:2, :3] @ np.asarray(pose[:3], np.float64) + ego[:2, 3])
+    if not centres:
+        return np.nan
+    c = np.asarray(centres)
+    return float(np.linalg.norm(c.max(0) - c.min(0)))
+
+
 def radial_tangential(pose_pred, pose_gt) -> tuple[float, float]:
     """The planar translation error split into ``(radial, tangential)`` metres (module doc).
 
@@ -506,7 +537,8 @@ def _score_frame(col: _Collector, method: str, track: Track, t: int, n_det: int,
                   length_err_m=length_err, width_err_m=width_err, ref_to_est_m=ref_to_est,
                   est_near_out=est_out[0], est_far_out=est_out[1], ref_near_out=ref_out[0],
                   ref_far_out=ref_out[1], length_rel_err=_relative(length_err, track.size[0]),
-                  ref_face_gap_m=_ref_face_gap(pts, gt_pose, track.size) if known else np.nan)
+                  ref_face_gap_m=_ref_face_gap(pts, gt_pose, track.size) if known else np.nan,
+                  world_travel_m=col.travel(track))
     if do_emd and gt is not None:
         col.add_emd(row, subsample_pair(pred, gt, emd_points, stable_seed(track.track_id, t)))
 
