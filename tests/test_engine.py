@@ -28,8 +28,11 @@ from seqshape.model.engine import (
     TOLERANCE,
     car_stream,
     export_onnx,
+    fold_split_layer,
     length_buckets,
     pack_frames,
+    split_first_layer,
+    split_pointnet,
 )
 from seqshape.model.estimator import noise_quantiles
 from seqshape.model.heading import wrap_angle
@@ -557,3 +560,22 @@ def test_spare_cores_bring_a_second_thread_to_the_same_outputs(monkeypatch):
     monkeypatch.setattr(engine_module, "_usable_cores", lambda: 1)
     one_core = Estimator(net, backend="onnx")._engine  # one core: nothing to gain
     assert one_core.wide(False) is None and one_core.wide(True) is None
+
+
+def test_folded_split_layer_computes_the_unfolded_pointnet():
+    """``fold_split_layer``: the split layer's per-point half moved before the first MLP's last
+    layer gives the same features as the plain two-stage PointNet (float32 rounding), and is
+    None where that layer does not widen its input."""
+    torch.manual_seed(0)
+    mlp1 = torch.nn.Sequential(torch.nn.Linear(3, 16), torch.nn.ReLU(), torch.nn.Linear(16, 32))
+    first = torch.nn.Linear(64, 48)
+    wx, wg, b = split_first_layer(first, 32)
+    wf, bf = fold_split_layer(mlp1, wx, b)
+    assert wf.shape == (48, 16)
+    x = torch.randn(5, 40, 3)
+    with torch.no_grad():
+        plain = split_pointnet(x, mlp1, wx, wg, b, None)
+        folded = split_pointnet(x, mlp1, wf, wg, bf, None, folded=True)
+    assert torch.allclose(plain, folded, atol=1e-5)
+    same = torch.nn.Sequential(torch.nn.Linear(3, 16), torch.nn.ReLU(), torch.nn.Linear(16, 16))
+    assert fold_split_layer(same, wx[:, :16], b) is None

@@ -10,7 +10,8 @@ W = 1) is a pure function of the frame and the state the track carries::
 :class:`StepGraph` is that function as a small torch module written for inference: the rows of
 a frame beyond its ``lengths`` must be cyclic copies of its real rows (what
 :meth:`Estimator.step` builds), so both max-pools are plain maxima (no gather), the weights are
-split and made contiguous once, and the GRU cell is spelled out (exportable). The recurrent
+split and made contiguous once (the split layer's per-point half folded before the first point
+MLP's last layer, :func:`fold_split_layer`), and the GRU cell is spelled out (exportable). The recurrent
 state stays outside, so streaming, resets and many tracks work the same on every backend.
 :class:`OneTrackGraph` is the same step for a pass of one track whose frame has points (no
 padding, no masks, both max-pools over a contiguous axis), the ONNX engines' graph for it.
@@ -130,6 +131,11 @@ INT8_LAYERS = ("shape_decoder",)
 #: thread, 100 live tracks without the refiner 1.4x, and within :data:`INT8_NOISE`'s bound on
 #: :func:`car_stream` seeds 0-2, but the shipped baseline with the refiner failed it on seed 5
 #: (24 tracks, 3 steps): too near the bound for ``"auto"`` to keep choosing int8 everywhere.
+#: Measured and not kept either (issue 47, later the same day): the folded split layer
+#: (:func:`fold_split_layer`, 64 -> 256 on a ReLU's output, one scale per point) within the
+#: bound on seeds 0, 1, 2, 5 for both shipped networks with and without the refiner (worst 0.84
+#: of the bound), but a 64-track refined pass only 48.0 -> 47.3 ms: rescaling its per-point
+#: output costs what the int8 product saves.
 INT8_STEP_LAYERS = ("shape_decoder", "mlp2_rest")
 #: The refiner's layers ``"onnx-int8"`` quantises in the refined batch graph
 #: (:class:`RefinedStepGraph`): its last per-point layer (57 % of its multiply-adds), in the
