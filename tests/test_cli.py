@@ -24,7 +24,7 @@ from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 ADDED = {"label": {"backend": "auto-float", "workers": 1, "resume": False,
                    "placement": "pretrained", "max_points": None, "image_size": None},
          "evaluate": {"backend": "auto-float", "refiner": "pretrained", "max_points": None,
-                      "smoothing": "none"}}
+                      "smoothing": "none", "baseline_refiner": "same"}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
 # (33229e9), plus ADDED; paths as strings

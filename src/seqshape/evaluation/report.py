@@ -629,10 +629,11 @@ def detections_markdown(details: dict[str, dict[str, Any]], methods: list[str]) 
             cells += ["n/a" if r.get(k) is None else f"{r[k]:.2f}"
                       for k in ("cd", "trans", "cd_above_floor")]
             lines.append(f"| {g} | {m} | {' / '.join(n)} | " + " | ".join(cells) + " |")
+    passed = (f"; passed (a part of moving): the vehicle travels less than "
+              f"{PASSED_TRAVEL_M:g} m in the fixed frame of the ego poses while the ego drives "
+              f"past it" if any(group == "passed" for _, group, _ in rows) else "")
     lines += ["", f"Parked: the true distance from the sensor spans less than "
-                  f"{100 * PARKED_SPREAD_M:g} cm over the track (one repeated view); passed (a "
-                  f"part of moving): the vehicle travels less than {PASSED_TRAVEL_M:g} m in the "
-                  f"fixed frame of the ego poses while the ego drives past it. The bins "
+                  f"{100 * PARKED_SPREAD_M:g} cm over the track (one repeated view){passed}. The bins "
                   f"pool their frames (17+ holds only the tracks that reach 17 detections); "
                   f"the ratios compare each track reaching 17+ with its own first detection "
                   f"(mean over those tracks): below 1, the error falls as detections "
