@@ -19,9 +19,9 @@ newest frame's value, for all the step's tracks in one vectorised pass:
   of a moving one, with masked medians and quantiles (numpy's formulas).
 
 The result equals the per-track smoother's to rounding (tested on random tracks with holes,
-segments, runs without points, with and without ego poses: within 1e-6 m and rad, but for a
-yaw that is rounding noise in the reference itself: a sideslip arm fitted to a straight run's
-curvatures of rounding size, applied to a real one; 1 estimate in about 10,000, 5e-4 rad);
+segments, runs without points, with and without ego poses: within 1e-6 m and rad; a straight
+run gets no sideslip arm in either, ``smooth.MIN_RMS_CURVATURE``, so no arm is fitted to
+curvatures of rounding size);
 :class:`~seqshape.model.smooth.CausalSmoother` stays the reference (and the path of a smoother
 that is not the default one's window).
 """
@@ -39,6 +39,7 @@ from seqshape.model.smooth import (
     ITERATIONS,
     MAX_REAR_ARM,
     MAX_SIDESLIP,
+    MIN_RMS_CURVATURE,
     SCALE,
     CausalSmoother,
     _axial,
@@ -340,7 +341,9 @@ def _sideslip(h: _Histories, direction, step, moving) -> np.ndarray:
     use = h.valid & moving
     off = np.where(use, _axial(h.w[..., 3] - direction), 0.0)
     kc = np.where(use, curv, 0.0)
-    active = (use.sum(axis=1) >= 3) & ((kc ** 2).sum(axis=1) > 0)
+    n_use = use.sum(axis=1)
+    rms = np.sqrt((kc ** 2).sum(axis=1) / np.maximum(n_use, 1))
+    active = (n_use >= 3) & (rms >= MIN_RMS_CURVATURE)  # a straight track: no arm
     fitted = active.copy()
     keep, arm = use, np.zeros(k)
     for _ in range(2):

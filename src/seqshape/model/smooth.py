@@ -182,6 +182,10 @@ MAX_REAR_ARM = 4.0
 MAX_SIDESLIP = np.radians(25.0)
 #: Half-width (frames) of the running median of the path's curvature in :func:`_sideslip`.
 CURVATURE_HALF = 4
+#: RMS curvature (1/m) of a track's moving frames below which it counts as straight and gets no
+#: rear-axle arm (radius 10 km: a road's own curvature is larger, rounding noise far smaller;
+#: an arm fitted to noise would turn the heading at the track's next real bend).
+MIN_RMS_CURVATURE = 1e-4
 
 
 def _sideslip(t: np.ndarray, direction: np.ndarray, step: np.ndarray, yaws: np.ndarray,
@@ -193,7 +197,8 @@ def _sideslip(t: np.ndarray, direction: np.ndarray, step: np.ndarray, yaws: np.n
     ``step`` metres per frame); ``arm``, one number per track, is fitted to the estimated
     ``yaws`` of the valid moving frames (their offsets from the motion direction, modulo pi,
     least squares with one round of 3-MAD outlier rejection, clipped to [0,
-    MAX_REAR_ARM]). A straight track has no curvature and gets no correction."""
+    MAX_REAR_ARM]). A straight track (RMS curvature under :data:`MIN_RMS_CURVATURE`) gets
+    no correction."""
     theta = np.unwrap(direction)
     curv = np.zeros(len(t))
     if len(t) > 1:
@@ -205,7 +210,7 @@ def _sideslip(t: np.ndarray, direction: np.ndarray, step: np.ndarray, yaws: np.n
     use = valid & moving
     k = curv[use]
     off = _axial((yaws - direction[valid])[use[valid]])  # a flip counts as its axis
-    if len(k) < 3 or float(np.sum(k * k)) <= 0.0:
+    if len(k) < 3 or float(np.sqrt(np.mean(k * k))) < MIN_RMS_CURVATURE:
         return np.zeros(len(t))
     keep = np.ones(len(k), bool)
     for _ in range(2):
