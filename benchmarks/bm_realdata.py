@@ -264,15 +264,24 @@ def finetune(dataset: str, root: Path, work: Path, args) -> None:
     """Fine-tune the sequential model on the logs' own references (stage 3), split by track,
     and print the tables before and after, on held-out vehicles and on all."""
     extract(dataset, root, work / "ft_tracks", args.sequence, "track")
-    run = work / "ft_run"
-    if _quiet(["train", "--data", str(work / "ft_tracks"), "--model", "sequential", "--init",
+    train_data = work / "ft_tracks"
+    if args.finetune_labels == "pseudo":  # the log's annotations are never read for training
+        train_data = work / "ft_pseudo"
+        if not (train_data / "manifest.json").exists() and _quiet(
+                ["pseudo-label", "--data", str(work / "ft_tracks"), "--out", str(train_data),
+                 "--checkpoint", args.checkpoint, "--refiner", args.refiner]) != 0:
+            sys.exit("pseudo-labelling failed")
+    run = work / f"ft_run_{args.finetune_labels}"
+    if _quiet(["train", "--data", str(train_data), "--model", "sequential", "--init",
                args.checkpoint, "--stage-steps", f"0,0,{args.finetune_steps}", "--lr", "2e-4",
                "--no-tensorboard", "--threads", "1", "--out", str(run)]) != 0:
         sys.exit("fine-tuning failed")
     for split in ("val", "all"):
         rows = {}
         for label, ckpt in (("before", args.checkpoint), ("after", str(run / "model.pt"))):
-            frames = read_frames(evaluate(work / "ft_tracks", work / f"ft_eval_{split}_{label}",
+            out = work / (f"ft_eval_{split}_{label}" if label == "before" else
+                          f"ft_eval_{split}_{label}_{args.finetune_labels}")
+            frames = read_frames(evaluate(work / "ft_tracks", out,
                                           ckpt, split, args.baseline, args.refiner,
                                           baseline_refiner=args.baseline_refiner))
             rows[f"sequential {label}"] = frames["sequential"]
@@ -301,6 +310,11 @@ def main() -> int:
     ap.add_argument("--baseline-refiner", default="same",
                     help="the baseline's own refiner when not --refiner's ('same'): a file, "
                          "'pretrained' or 'none'")
+    ap.add_argument("--finetune-labels", default="annotations",
+                    choices=("annotations", "pseudo"),
+                    help="what --finetune-steps tunes on: the log's annotated references, or "
+                         "pseudo-labels (`seqshape pseudo-label`: the model's own offline "
+                         "estimates and accumulations; self-supervised)")
     ap.add_argument("--finetune-steps", type=int, default=0,
                     help="also fine-tune the sequential model this many stage-3 steps on the "
                          "logs' own references and evaluate again (0: no)")

@@ -71,6 +71,7 @@ def broken(tmp_path_factory) -> dict[str, tuple[list[str], Path]]:
         "stats": ([str(ds.path)], fifo_a),
         "train": (["--data", str(ds.path), "--out", out + "t"], fifo_b),
         "train-refiner": (["--data", str(ds.path), "--out", out + "r"], fifo_a),
+        "pseudo-label": (["--data", str(ds.path), "--out", out + "p"], fifo_a),
         "evaluate": (["--data", str(ds.path), "--checkpoint", "pretrained", "--out",
                       out + "e"], fifo_b),
         "scenes": (["--out", str(t / "a_file"), "--sequences", "1", "--frames", "2"],

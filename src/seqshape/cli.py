@@ -35,6 +35,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("train", "train the sequential model or the per-frame baseline"),
     "train-refiner": ("train_refiner", "train the placement refiner on the networks' own "
                                        "estimates"),
+    "pseudo-label": ("pseudo_label", "label a track dataset with the sequential model's "
+                                     "offline estimates, for self-supervised fine-tuning"),
     "evaluate": ("evaluate", "evaluate shape and pose estimates on a dataset's val split"),
     "scenes": ("scenes", "generate camera+LiDAR scenes in the KITTI tracking layout"),
     "show-scene": ("show_scene", "draw one frame of a scene with its amodal ground truth"),
