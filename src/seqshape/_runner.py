@@ -44,6 +44,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -247,37 +248,41 @@ def run_pool(fn: Callable, units: Sequence, workers: int = 1, *,
         bar.close()
 
 
-def _spawn_pool(workers: int, initializer: Callable | None, initargs: tuple):
-    """``workers`` spawned processes, each started by :func:`_init_worker`."""
-    ctx = multiprocessing.get_context("spawn")
-    return ctx.Pool(workers, initializer=_init_worker,
-                    initargs=(os.getpid(), initializer, initargs))
+def _spawn_pool(workers: int, initializer: Callable | None, initargs: tuple
+                ) -> ProcessPoolExecutor:
+    """``workers`` spawned processes, each started by :func:`_init_worker`, all at once (a
+    no-op task each: the executor would start them one submission at a time)."""
+    pool = ProcessPoolExecutor(max_workers=workers,
+                               mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_init_worker,
+                               initargs=(os.getpid(), initializer, initargs))
+    for _ in range(workers):
+        pool.submit(int)
+    return pool
+
+
+def stop_pool(pool: ProcessPoolExecutor) -> None:
+    """End ``pool`` at once after an error or Ctrl-C: queued tasks cancelled, the workers
+    killed, its threads joined. (``multiprocessing.Pool.terminate`` could hang here for good:
+    its task thread blocked on a full queue that no worker read any more, seen under load.)"""
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        proc.kill()
+    pool.shutdown(wait=True)
 
 
 def _pooled(fn, units, workers, initializer, initargs, bar, step) -> Iterator:
     pool = _spawn_pool(workers, initializer, initargs)
     try:
-        indexed = list(enumerate(units))
-        for j, result in pool.imap_unordered(_Indexed(fn), indexed, chunksize=1):
-            bar.update(step(units[j], result))
+        futures = {pool.submit(fn, u): j for j, u in enumerate(units)}
+        for fut in as_completed(futures):
+            result = fut.result()
+            bar.update(step(units[futures[fut]], result))
             yield result
-        pool.close()
     except BaseException:
-        pool.terminate()
+        stop_pool(pool)
         raise
-    finally:
-        pool.join()
-
-
-class _Indexed:
-    """``(j, u) -> (j, fn(u))``: a picklable wrapper that tells which unit a result is of."""
-
-    def __init__(self, fn: Callable):
-        self.fn = fn
-
-    def __call__(self, item):
-        j, u = item
-        return j, self.fn(u)
+    pool.shutdown(wait=True)
 
 
 class WorkerPool:
@@ -287,7 +292,7 @@ class WorkerPool:
 
     Workers start at once (so their imports overlap the parent's own start-up), each with
     ``initializer(*initargs)``, ignore SIGINT and end with their parent, as in
-    :func:`run_pool`. :meth:`submit` returns a ``multiprocessing.pool.AsyncResult``
+    :func:`run_pool`. :meth:`submit` returns a :class:`Task`
     (``ready()``, ``get()``; a task's exception is raised by ``get``). Use it as a context
     manager: leaving it normally waits for the tasks; an exception (Ctrl-C included)
     terminates the workers and goes on.
@@ -300,16 +305,30 @@ class WorkerPool:
         self.workers = workers
         self._pool = _spawn_pool(workers, initializer, initargs)
 
-    def submit(self, fn: Callable, unit: Any):
+    def submit(self, fn: Callable, unit: Any) -> Task:
         """Run ``fn(unit)`` in a worker (``fn`` and ``unit`` must pickle)."""
-        return self._pool.apply_async(fn, (unit,))
+        return Task(self._pool.submit(fn, unit))
 
     def __enter__(self) -> WorkerPool:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
-            self._pool.close()
+            self._pool.shutdown(wait=True)
         else:
-            self._pool.terminate()
-        self._pool.join()
+            stop_pool(self._pool)
+
+
+class Task:
+    """A task of :class:`WorkerPool`: ``ready()`` (done, or failed) and ``get()`` (its result,
+    or its exception raised here; a worker that died raises
+    :class:`concurrent.futures.process.BrokenProcessPool`)."""
+
+    def __init__(self, future: Future):
+        self._future = future
+
+    def ready(self) -> bool:
+        return self._future.done()
+
+    def get(self, timeout: float | None = None) -> Any:
+        return self._future.result(timeout)

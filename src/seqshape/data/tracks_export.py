@@ -23,12 +23,13 @@ import logging
 import multiprocessing
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from seqshape._io import atomic_write_json
 from seqshape._progress import progress
-from seqshape._runner import watch_parent
+from seqshape._runner import stop_pool, watch_parent
 from seqshape.data.crop import CropConfig
 from seqshape.data.dataset import check_folder_settings, manifest_entry, write_manifest
 from seqshape.data.extract import extract_tracks, track_name
@@ -271,7 +272,8 @@ def _pool(workers: int):
     end themselves when this process dies (:func:`seqshape._runner.watch_parent`)."""
     methods = multiprocessing.get_all_start_methods()
     ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-    return ctx.Pool(workers, initializer=watch_parent, initargs=(os.getpid(),))
+    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=watch_parent,
+                               initargs=(os.getpid(),))
 
 
 def run_jobs(jobs: list[LogJob], workers: int):
@@ -285,7 +287,8 @@ def run_jobs(jobs: list[LogJob], workers: int):
             pool = None
         else:
             pool = _pool(min(workers, len(jobs)))
-            results = pool.imap_unordered(extract_log, jobs, chunksize=1)
+            results = (f.result() for f in as_completed([pool.submit(extract_log, j)
+                                                         for j in jobs]))
         try:
             for res in results:
                 if res.marker is not None:
@@ -294,10 +297,14 @@ def run_jobs(jobs: list[LogJob], workers: int):
                                 fps=f"{frames / max(time.perf_counter() - t0, 1e-9):.1f}")
                 bar.update(1)
                 yield res
+        except BaseException:
+            if pool is not None:
+                stop_pool(pool)
+                pool = None
+            raise
         finally:
             if pool is not None:
-                pool.terminate()
-                pool.join()
+                pool.shutdown(wait=True)
     finally:
         bar.close()
 
