@@ -77,20 +77,28 @@ def _cloud(rng, n: int, pose) -> np.ndarray:
     return pts[near][:n]
 
 
+def moving_clouds(rng, n_tracks: int, n_steps: int, counts: list[int]):
+    """Per step ``t``: ``(t, idx, clouds)``, the tracks ``i`` present (from step ``i % 3`` on,
+    each moving 0.8 m a step along its heading) and their clouds of
+    ``counts[(i + t) % len(counts)]`` points."""
+    starts = rng.uniform(6, 30, size=(n_tracks, 2)) * rng.choice([-1, 1], size=(n_tracks, 2))
+    yaws = rng.uniform(-np.pi, np.pi, size=n_tracks)
+    for t in range(n_steps):
+        idx = [i for i in range(n_tracks) if t >= i % 3]
+        yield t, idx, [_cloud(rng, counts[(i + t) % len(counts)],
+                              (*(starts[i] + 0.8 * t * np.array([np.cos(yaws[i]),
+                                                                 np.sin(yaws[i])])),
+                               -0.9, yaws[i])) for i in idx]
+
+
 def _stream(seed: int, n_tracks: int = 12, n_steps: int = 6, num_points: int = 32):
     """Steps over moving tracks: empty frames, one point, many points (> N), tracks that
     appear late, timestamps known, missing and NaN, size and class hints."""
     rng = np.random.default_rng(seed)
-    starts = rng.uniform(6, 30, size=(n_tracks, 2)) * rng.choice([-1, 1], size=(n_tracks, 2))
-    yaws = rng.uniform(-np.pi, np.pi, size=n_tracks)
-    sizes_pool = [0, 1, 2, num_points // 2, num_points, 5 * num_points]
     steps = []
-    for t in range(n_steps):
-        ids = [f"t{i}" for i in range(n_tracks) if t >= i % 3]
-        idx = [int(s[1:]) for s in ids]
-        pts = [_cloud(rng, sizes_pool[(i + t) % len(sizes_pool)],
-                      (*(starts[i] + 0.8 * t * np.array([np.cos(yaws[i]), np.sin(yaws[i])])),
-                       -0.9, yaws[i])) for i in idx]
+    for t, idx, pts in moving_clouds(rng, n_tracks, n_steps,
+                                     [0, 1, 2, num_points // 2, num_points, 5 * num_points]):
+        ids = [f"t{i}" for i in idx]
         stamps = [[0.1 * t, None, float("nan"), 0.1 * t + 0.03][i % 4] for i in idx]
         sizes = [None if i % 2 else (13.0 if i % 4 == 0 else 4.5) for i in idx]
         classes = [["bus", None, "car"][i % 3] for i in idx]

@@ -16,15 +16,14 @@ import numpy as np
 import pytest
 import torch
 from _model_data import box_track
-from test_engine import _cloud  # the sensor-side half of a box: the engine tests' clouds
+from test_engine import _assert_close, _cloud, moving_clouds  # the engine tests' helpers
 
 from seqshape.errors import ConfigError
 from seqshape.model import Estimator, ModelConfig, ShapePoseNet
 from seqshape.model import engine as engine_module
 from seqshape.model import placement as P
-from seqshape.model.engine import INT8_NOISE, TOLERANCE, car_stream
+from seqshape.model.engine import INT8_NOISE, car_stream
 from seqshape.model.estimator import check_backend, deviations, noise_quantiles
-from seqshape.model.heading import wrap_angle
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
@@ -61,15 +60,9 @@ def _steps(seed: int, n_tracks: int = 9, n_steps: int = 6, num_points: int = 32)
     """Moving tracks with 0, 1, few, N and more than N points, late starts, size hints that
     make some estimates long (further refiner passes) and change (a recomputed empty frame)."""
     rng = np.random.default_rng(seed)
-    starts = rng.uniform(6, 30, size=(n_tracks, 2)) * rng.choice([-1, 1], size=(n_tracks, 2))
-    yaws = rng.uniform(-np.pi, np.pi, size=n_tracks)
-    pool = [0, 1, 3, num_points // 2, num_points, 4 * num_points]
     steps = []
-    for t in range(n_steps):
-        idx = [i for i in range(n_tracks) if t >= i % 3]
-        pts = [_cloud(rng, pool[(i + t) % len(pool)],
-                      (*(starts[i] + 0.8 * t * np.array([np.cos(yaws[i]), np.sin(yaws[i])])),
-                       -0.9, yaws[i])) for i in idx]
+    for t, idx, pts in moving_clouds(rng, n_tracks, n_steps,
+                                     [0, 1, 3, num_points // 2, num_points, 4 * num_points]):
         sizes = [None if i % 2 else (14.0 if (i + t // 3) % 4 == 0 else 4.5) for i in idx]
         steps.append({"track_ids": [f"t{i}" for i in idx], "point_lists": pts,
                       "timestamps": [0.1 * t] * len(idx), "sizes": sizes})
@@ -83,19 +76,6 @@ def _single(rng, num_points: int, track: str = "solo") -> list[dict]:
         steps.append({"track_ids": [track], "point_lists": [_cloud(rng, n, pose)],
                       "timestamps": [0.1 * t]})
     return steps
-
-
-def _assert_close(fast, ref, where: str, tolerance=TOLERANCE) -> None:
-    tol_shape, tol_centre, tol_yaw = tolerance
-    for a, b in zip(fast, ref, strict=True):
-        assert a.track_id == b.track_id and a.num_points == b.num_points
-        assert a.complete.dtype == b.complete.dtype and a.pose.dtype == b.pose.dtype
-        err = np.abs(a.complete - b.complete).max()
-        assert err <= tol_shape, f"{where} {a.track_id}: shape differs by {err:.2e} m"
-        err = np.abs(a.pose[:3] - b.pose[:3]).max()
-        assert err <= tol_centre, f"{where} {a.track_id}: centre differs by {err:.2e} m"
-        err = abs(wrap_angle(a.pose[3] - b.pose[3]))
-        assert err <= tol_yaw, f"{where} {a.track_id}: yaw differs by {err:.2e} rad"
 
 
 def _compare(net, refiner, backend: str, steps, resets=(3,)) -> Estimator:
