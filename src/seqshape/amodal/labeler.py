@@ -1014,7 +1014,7 @@ def _chunk_size(frames: int, workers: int) -> int:
 
 
 class _Done:
-    """A finished task, with the interface of ``multiprocessing.pool.AsyncResult``."""
+    """A finished task, with the interface of :class:`seqshape._runner.Task` (``ready``, ``get``)."""
 
     def __init__(self, value):
         self.value = value
