@@ -2,9 +2,9 @@
 
 The causal and offline smoothers, the shape average and the heading vote work in the fixed
 frame of the ego poses (docs/model.md): a parked car is a constant there only if the poses are
-right. This script registers pairs of the log's own sweeps (point-to-point ICP with trimmed
-pairs, started from the ego poses' relative motion; the ground, the ego's own returns and far
-points left out) and prints, per pair, the travel the ego poses give, the travel the sweeps
+right. This script registers pairs of the log's own sweeps (:func:`seqshape.data.odometry.register`:
+point-to-point ICP with trimmed pairs, started from the ego poses' relative motion; the
+ground, the ego's own returns and far points left out) and prints, per pair, the travel the ego poses give, the travel the sweeps
 give, their ratio and the difference of the two relative motions. A ratio far from 1 means the
 fixed frame stretches or shrinks: a vehicle parked while the ego drives by appears to move by
 ``|1 - ratio|`` times the ego's travel.
@@ -16,6 +16,8 @@ Without ``--root`` there is nothing to measure (real data is never part of the r
 Measured on the shared KITTI tracking log 0000 (2026-12-07): the oxts poses give 3-4 % less
 travel than the sweeps (0 -> 19: 5.92 m against 6.11 m; 124 -> 153: 17.79 against 18.31 m),
 so its parked cars drift 0.3-0.5 m over a track in the fixed frame (docs/results.md).
+``seqshape tracks --ego-poses lidar`` (and ``label --ego-poses lidar``) replaces such poses by
+the chained registrations of consecutive sweeps (:mod:`seqshape.data.odometry`).
 """
 
 from __future__ import annotations
@@ -25,55 +27,15 @@ import sys
 
 import numpy as np
 from _bench import print_table
-from scipy.spatial import cKDTree
 
+from seqshape.data.odometry import OdometryConfig, register, registration_cloud, thin
 from seqshape.data.sequence import log_names, open_log
 
-#: Sweep points kept for the registration: above this height over the sensor's ground (m,
-#: sensor frame z, a LiDAR about 1.7-2 m up), beyond MIN_RANGE (the ego's own returns) and
-#: within MAX_RANGE (m, planar).
-MIN_Z, MIN_RANGE, MAX_RANGE = -1.3, 3.0, 40.0
-ITERATIONS, MAX_PAIR_M, KEEP = 40, 1.0, 0.8
 #: A registration whose median pair distance stays above this (m) has not converged (too much
 #: motion between the sweeps, or too little structure): it is shown, not counted.
-MAX_RESIDUAL = 0.15
+MAX_RESIDUAL = OdometryConfig().max_residual
 #: Pairs whose registered travel is under this (m) give no ratio (a stopped ego).
 MIN_TRAVEL = 1.0
-
-
-def static_cloud(points: np.ndarray) -> np.ndarray:
-    """The points a registration uses (module constants), float64 (N, 3)."""
-    p = np.asarray(points, dtype=np.float64)[:, :3]
-    r = np.hypot(p[:, 0], p[:, 1])
-    return p[(p[:, 2] > MIN_Z) & (r > MIN_RANGE) & (r < MAX_RANGE)]
-
-
-def icp(moving: np.ndarray, fixed: np.ndarray, init: np.ndarray) -> tuple[np.ndarray, float]:
-    """Rigid (4, 4) taking ``moving`` onto ``fixed`` from ``init``: point-to-point ICP over
-    the closest ``KEEP`` share of the pairs within ``MAX_PAIR_M``; returns it and the median
-    pair distance (m) of the last iteration."""
-    tree = cKDTree(fixed)
-    T = np.array(init, dtype=np.float64)
-    med = np.nan
-    for _ in range(ITERATIONS):
-        moved = moving @ T[:3, :3].T + T[:3, 3]
-        d, i = tree.query(moved, distance_upper_bound=MAX_PAIR_M)
-        ok = np.isfinite(d)
-        if ok.sum() < 50:
-            break
-        ok &= d <= np.quantile(d[ok], KEEP)
-        p, q = moved[ok], fixed[i[ok]]
-        mp, mq = p.mean(0), q.mean(0)
-        u, _, vt = np.linalg.svd((p - mp).T @ (q - mq))
-        r = vt.T @ u.T
-        if np.linalg.det(r) < 0:
-            vt[-1] *= -1
-            r = vt.T @ u.T
-        step = np.eye(4)
-        step[:3, :3], step[:3, 3] = r, mq - r @ mp
-        T = step @ T
-        med = float(np.median(d[ok]))
-    return T, med
 
 
 def check_pair(log, a: int, b: int) -> dict | None:
@@ -82,7 +44,9 @@ def check_pair(log, a: int, b: int) -> dict | None:
     if ea is None or eb is None:
         return None
     given = np.linalg.inv(ea) @ eb
-    found, med = icp(static_cloud(log.points(b)), static_cloud(log.points(a)), given)
+    cfg = OdometryConfig()
+    moving = thin(registration_cloud(log.points(b), cfg), cfg.voxel)
+    found, med = register(moving, registration_cloud(log.points(a), cfg), given, cfg)
     tg, tf = float(np.linalg.norm(given[:3, 3])), float(np.linalg.norm(found[:3, 3]))
     return {"pair": f"{a} -> {b}", "ego travel m": tg, "sweeps travel m": tf,
             "ratio": tg / tf if tf >= MIN_TRAVEL and med <= MAX_RESIDUAL else np.nan,

@@ -65,9 +65,11 @@ def _quiet(argv: list[str]) -> int:
         return seqshape_main(argv)
 
 
-def extract(dataset: str, root: Path, out: Path, sequences, split_by: str) -> None:
+def extract(dataset: str, root: Path, out: Path, sequences, split_by: str,
+            ego_poses: str = "given") -> None:
     argv = ["tracks", "--dataset", dataset, "--root", str(root), "--out", str(out),
-            "--split-by", split_by, "--val-fraction", "0.3" if split_by == "track" else "0"]
+            "--split-by", split_by, "--val-fraction", "0.3" if split_by == "track" else "0",
+            "--ego-poses", ego_poses]
     for s in sequences or ():
         argv += ["--sequence", s]
     if split_by == "log":
@@ -192,7 +194,7 @@ def summarise(rows: dict[str, dict[str, np.ndarray]]) -> dict:
 def run_source(name: str, dataset: str, root: Path, work: Path, args) -> dict | None:
     data = work / "tracks"
     if not (args.reuse and (data / "manifest.json").exists()):
-        extract(dataset, root, data, args.sequence, "log")
+        extract(dataset, root, data, args.sequence, "log", args.ego_poses)
     rows: dict[str, dict[str, np.ndarray]] = {}
     for mode in args.modes:
         per_frame = evaluate(data, work / f"eval_{mode}", args.checkpoint, "all",
@@ -263,7 +265,7 @@ def parse_sources(args) -> list[tuple[str, str, Path]]:
 def finetune(dataset: str, root: Path, work: Path, args) -> None:
     """Fine-tune the sequential model on the logs' own references (stage 3), split by track,
     and print the tables before and after, on held-out vehicles and on all."""
-    extract(dataset, root, work / "ft_tracks", args.sequence, "track")
+    extract(dataset, root, work / "ft_tracks", args.sequence, "track", args.ego_poses)
     train_data = work / "ft_tracks"
     if args.finetune_labels == "pseudo":  # the log's annotations are never read for training
         train_data = work / "ft_pseudo"
@@ -310,6 +312,9 @@ def main() -> int:
     ap.add_argument("--baseline-refiner", default="same",
                     help="the baseline's own refiner when not --refiner's ('same'): a file, "
                          "'pretrained' or 'none'")
+    ap.add_argument("--ego-poses", default="given", choices=("given", "lidar"),
+                    help="the tracks' ego poses (seqshape tracks --ego-poses): the logs' own "
+                         "or LiDAR odometry of their sweeps")
     ap.add_argument("--finetune-labels", default="annotations",
                     choices=("annotations", "pseudo"),
                     help="what --finetune-steps tunes on: the log's annotated references, or "

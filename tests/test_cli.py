@@ -22,9 +22,11 @@ from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 # options added since that release (issue 17: inference backends, labelling workers;
 # label --resume; evaluate and label --max-points; evaluate --smoothing)
 ADDED = {"label": {"backend": "auto-float", "workers": 1, "resume": False,
-                   "placement": "pretrained", "max_points": None, "image_size": None},
+                   "placement": "pretrained", "max_points": None, "image_size": None,
+                   "ego_poses": "given"},
          "evaluate": {"backend": "auto-float", "refiner": "pretrained", "max_points": None,
-                      "smoothing": "none", "baseline_refiner": "same"}}
+                      "smoothing": "none", "baseline_refiner": "same"},
+         "tracks": {"ego_poses": "given"}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
 # (33229e9), plus ADDED; paths as strings
@@ -66,14 +68,15 @@ RELEASED = {
         "classes": "car,van,truck,bus,trailer", "dataset": "kitti", "ground": "plane",
         "margin": 0.2, "min_points": 10, "out": "o", "reference": True,
         "reference_points": 2048, "root": "r", "sequence": None, "shard": "1/1", "split": None,
-        "split_by": "log", "val_fraction": 0.2, "workers": 1, "keep_duplicates": False}),
+        "split_by": "log", "val_fraction": 0.2, "workers": 1, "keep_duplicates": False,
+        **ADDED["tracks"]}),
     "tracks+flags": (["--dataset", "kitti", "--root", "r", "--out", "o", "--no-reference",
                       "--split", "val", "--margin", "0.5"], {
         "classes": "car,van,truck,bus,trailer", "dataset": "kitti", "ground": "plane",
         "margin": 0.5, "min_points": 10, "out": "o", "reference": False,
         "reference_points": 2048, "root": "r", "sequence": None, "shard": "1/1",
         "split": "val", "split_by": "log", "val_fraction": 0.2, "workers": 1,
-        "keep_duplicates": False}),
+        "keep_duplicates": False, **ADDED["tracks"]}),
 }
 
 

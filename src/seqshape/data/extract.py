@@ -23,6 +23,8 @@ dataset_num_points    per frame, the dataset's count of points in the box, or nu
 visibility            per frame, the dataset's visibility value, or null
 ego_poses             per frame, (4, 4) sensor frame -> log reference frame
                       (absent when the log has no ego motion)
+ego_pose_source       ``"given"`` (the log's own) or ``"lidar"`` (LiDAR odometry,
+                      :mod:`seqshape.data.odometry`); absent without ego poses
 crop                  the :class:`~seqshape.data.crop.CropConfig` used
 duplicates            absent, or the object ids of the log's duplicate annotations
                       of this vehicle, left out (:func:`duplicate_objects`)
@@ -199,6 +201,7 @@ def tracks_from_crops(log: DrivingLog, cuts: Iterable[tuple[int, list, list]],
         ego = [log.ego_pose(f) for f in frs]
         if all(e is not None for e in ego):
             meta["ego_poses"] = [np.asarray(e, dtype=np.float64).tolist() for e in ego]
+            meta["ego_pose_source"] = "lidar" if hasattr(log, "odometry") else "given"
         tracks.append(Track(
             track_id=track_name(log.name, oid), points=[x[1] for x in r],
             poses=np.stack([x[2].pose for x in r]), complete=None,

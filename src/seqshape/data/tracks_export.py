@@ -33,6 +33,7 @@ from seqshape._runner import stop_pool, watch_parent
 from seqshape.data.crop import CropConfig
 from seqshape.data.dataset import check_folder_settings, manifest_entry, write_manifest
 from seqshape.data.extract import extract_tracks, track_name
+from seqshape.data.odometry import EGO_POSES, with_lidar_odometry
 from seqshape.data.reference import accumulated_reference
 from seqshape.data.sequence import DATASETS, log_names
 from seqshape.data.track import save_track
@@ -74,6 +75,10 @@ class TracksConfig:
     keep_duplicates: keep a vehicle's duplicate annotations (two object ids whose boxes
         coincide) as tracks of their own instead of leaving all but one out
         (seqshape.data.extract, "Duplicate annotations").
+    ego_poses: the tracks' ego poses: the log's own (given) or LiDAR odometry of its sweeps
+        (lidar: each sweep registered to the one before, seqshape.data.odometry; for logs
+        whose poses stretch or jitter, as benchmarks/bm_ego_poses.py shows, or have none;
+        about 0.25 s a sweep).
     """
 
     dataset: str
@@ -88,6 +93,7 @@ class TracksConfig:
     split: str | None = None
     split_by: str = "log"
     keep_duplicates: bool = False
+    ego_poses: str = "given"
 
     def validate(self) -> None:
         if self.min_points < 0:
@@ -98,6 +104,8 @@ class TracksConfig:
             raise ConfigError(f"--split must be one of {SPLITS}, got {self.split!r}")
         if self.split_by not in SPLIT_BY:
             raise ConfigError(f"--split-by must be one of {SPLIT_BY}, got {self.split_by!r}")
+        if self.ego_poses not in EGO_POSES:
+            raise ConfigError(f"--ego-poses must be one of {EGO_POSES}, got {self.ego_poses!r}")
         if self.reference_points < 1:
             raise ConfigError(f"--reference-points must be >= 1, got {self.reference_points}")
         self.crop()  # margin and ground mode
@@ -106,8 +114,11 @@ class TracksConfig:
         return CropConfig(margin=self.margin, ground=self.ground)
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "classes": list(self.classes), "crop": self.crop().to_dict(),
-                "extractor_version": EXTRACTOR_VERSION}
+        out = {**asdict(self), "classes": list(self.classes), "crop": self.crop().to_dict(),
+               "extractor_version": EXTRACTOR_VERSION}
+        if self.ego_poses == "given":  # folders written before the option keep matching
+            del out["ego_poses"]
+        return out
 
 
 def log_split(dataset: str, log: str, val_fraction: float, forced: str | None = None) -> str:
@@ -239,6 +250,8 @@ def extract_log(job: LogJob) -> LogResult:
 def _extract_log(job: LogJob, t0: float) -> LogResult:
     cfg, out = job.config, Path(job.out)
     log = _open(job.reader, cfg.root, job.log)
+    if cfg.ego_poses == "lidar":
+        with_lidar_odometry(log)
     tracks = extract_tracks(log, cfg.classes, cfg.crop(), cfg.min_points,
                             keep_duplicates=cfg.keep_duplicates)
     split = log_split(cfg.dataset, job.log, cfg.val_fraction, cfg.split)
@@ -263,6 +276,12 @@ def _extract_log(job: LogJob, t0: float) -> LogResult:
     marker = {"dataset": cfg.dataset, "log": job.log, "split": split,
               "n_frames": len(log.frames), "n_points": sum(e["n_points"] for e in entries),
               "n_no_reference": len(no_ref), "seconds": round(seconds, 3), "tracks": entries}
+    if cfg.ego_poses == "lidar":
+        marker["odometry"] = odo = log.odometry.summary()
+        if odo["bridged"] > 0.1 * max(odo["pairs"], 1):
+            warnings.append(f"log {job.log}: LiDAR odometry bridged {odo['bridged']} of "
+                            f"{odo['pairs']} sweep pairs with the log's own motion (time gaps, "
+                            "too few points, or no convergence)")
     atomic_write_json(marker_path(out, cfg.dataset, job.log), marker)
     return LogResult(job.log, marker=marker, seconds=seconds, warnings=warnings)
 

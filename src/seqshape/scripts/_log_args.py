@@ -2,7 +2,8 @@
 
 ``--dataset {kitti,av2,nuscenes} --root DIR --sequence ID`` opens the log
 (:func:`seqshape.data.sequence.open_log`); ``--kitti DIR`` is short for ``--dataset kitti
---root DIR``; ``--max-frames F`` keeps its first F frames.
+--root DIR``; ``--max-frames F`` keeps its first F frames; ``--ego-poses lidar`` replaces its
+ego poses by LiDAR odometry (:mod:`seqshape.data.odometry`).
 """
 
 from __future__ import annotations
@@ -10,12 +11,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from seqshape.data.odometry import EGO_POSES, with_lidar_odometry
 from seqshape.data.sequence import DATASETS, open_log
 from seqshape.errors import ConfigError
 
 
 def add_log_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--dataset``, ``--root``, ``--kitti``, ``--sequence`` and ``--max-frames``."""
+    """``--dataset``, ``--root``, ``--kitti``, ``--sequence``, ``--max-frames`` and
+    ``--ego-poses``."""
     parser.add_argument("--dataset", choices=list(DATASETS), default=None,
                         help="dataset format of --root (default kitti)")
     parser.add_argument("--root", type=Path, default=None,
@@ -28,6 +31,11 @@ def add_log_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, metavar="F",
                         help="use only the first F frames (the sequence as if it ended there; "
                              "default: all)")
+    parser.add_argument("--ego-poses", choices=EGO_POSES, default="given",
+                        help="the ego poses the smoothers and the heading vote work in: the "
+                             "log's own (given) or LiDAR odometry of its sweeps (lidar, about "
+                             "0.25 s a sweep; for poses that stretch or jitter, or none; "
+                             "default %(default)s)")
 
 
 def open_args_log(args: argparse.Namespace):
@@ -41,4 +49,7 @@ def open_args_log(args: argparse.Namespace):
         dataset, root = args.dataset or "kitti", args.root
     else:
         raise ConfigError("give the data: --dataset NAME --root DIR (or --kitti DIR)")
-    return open_log(dataset, root, args.sequence).restrict(args.max_frames)
+    log = open_log(dataset, root, args.sequence).restrict(args.max_frames)
+    if getattr(args, "ego_poses", "given") == "lidar":
+        with_lidar_odometry(log)
+    return log

@@ -15,6 +15,7 @@ import seqshape.data.tracks_export as _tracks
 from seqshape._deprecated import forward
 from seqshape._runner import parse_shard
 from seqshape.data.crop import GROUND_MODES
+from seqshape.data.odometry import EGO_POSES
 from seqshape.data.sequence import DATASETS, VEHICLE_CLASSES, parse_classes
 from seqshape.data.tracks_export import (
     SPLIT_BY,
@@ -29,7 +30,7 @@ from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 HELP = ("extract vehicle tracks from real driving logs (KITTI, Argoverse 2, nuScenes) as a "
         "track dataset")
 FIELDS = ["min_points", "margin", "ground", "reference", "reference_points", "val_fraction",
-          "split_by", "split", "keep_duplicates"]
+          "split_by", "split", "keep_duplicates", "ego_poses"]
 _MOVED = ("CONFIG_FILE", "LOGS_DIR", "EXTRACTOR_VERSION", "SPLITS", "SPLIT_BY", "TracksConfig",
           "log_split", "marker_path", "parse_sequences", "select_logs", "read_marker", "LogJob",
           "LogResult", "extract_log", "run_jobs", "TracksSummary", "extract_dataset",
@@ -50,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="vehicle classes to keep (default %(default)s)")
     add_config_arguments(parser, TracksConfig, FIELDS, ground={"choices": GROUND_MODES},
                          reference={"action": argparse.BooleanOptionalAction},
-                         split_by={"choices": SPLIT_BY}, split={"choices": SPLITS})
+                         split_by={"choices": SPLIT_BY}, split={"choices": SPLITS},
+                         ego_poses={"choices": EGO_POSES})
     parser.add_argument("--shard", default="1/1", metavar="K/N",
                         help="extract only part K of N (1-based, by log); every run rewrites "
                              "the manifest from all logs done so far (default %(default)s)")
