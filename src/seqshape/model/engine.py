@@ -576,10 +576,12 @@ class _Refined:
                            pose[:, 1] + sn * corr[:, 0] + c * corr[:, 1],
                            pose[:, 2] + corr[:, 2], pose[:, 3] + corr[:, 3]], dim=1)
         stretch = torch.cat([torch.exp(corr[:, 4:6]), torch.ones_like(corr[:, :1])], dim=1)
-        moved = place_points(box * stretch.unsqueeze(1), new)
         changed = has & (corr != 0).any(dim=1)
-        complete = torch.where(changed[:, None, None], moved, complete)
+        # one placement: a row left alone is its box times 1 placed with its own pose, the
+        # network's placed shape to the bit (the network's ``complete`` is not computed)
+        stretch = torch.where(changed.unsqueeze(1), stretch, torch.ones_like(stretch))
         pose_out = torch.where(changed.unsqueeze(1), new, pose)
+        complete = place_points(box * stretch.unsqueeze(1), pose_out)
         return complete, pose_out, corr, ext
 
 
