@@ -218,7 +218,8 @@ def lidar_odometry(log, frames: Sequence[int] | None = None,
     prev = None  # (frame, time, given pose, cloud, tree)
     last_motion = None  # (relative (4, 4), seconds) of the last pair used
     bar = progress(frames, desc=f"odometry {log.name}", unit="sweep",
-                   disable=None if show_progress is None else not show_progress)
+                   disable=True if not frames else None if show_progress is None
+                   else not show_progress)
     for f in bar:
         given = log.ego_pose(f)
         given = None if given is None else np.asarray(given, dtype=np.float64)
