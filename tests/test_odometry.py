@@ -56,18 +56,18 @@ def _world(rng: np.random.Generator) -> np.ndarray:
 
 
 class DriveLog(DrivingLog):
-    """A drive through :func:`_world` at 10 Hz: true poses ``truth``, the log's own ego poses
+    """A drive through :func:`_world`, a sweep every ``period`` s: true poses ``truth``, the log's own ego poses
     stretched by ``scale`` with ``jitter`` (m) of noise (None: no ego poses); each sweep keeps
     a random 60 % of the visible points. ``holes``: frame numbers whose sweep is empty."""
 
     dataset, name, sensor = "drive", "d0", "fake-lidar"
 
     def __init__(self, n=12, speed=6.0, turn=0.15, scale=0.95, jitter=0.04, given=True,
-                 holes=(), gap_after=None, seed=0):
+                 holes=(), gap_after=None, period=0.1, seed=0):
         rng = np.random.default_rng(seed)
         self.world = _world(rng)
         self.frames = list(range(n))
-        self.times = {f: 0.1 * f + (2.0 if gap_after is not None and f > gap_after else 0.0)
+        self.times = {f: period * f + (2.0 if gap_after is not None and f > gap_after else 0.0)
                       for f in self.frames}
         self.truth, self.given = {}, {}
         x = y = yaw = 0.0
@@ -76,7 +76,7 @@ class DriveLog(DrivingLog):
             gx = scale * x + rng.normal(0, jitter)
             gy = scale * y + rng.normal(0, jitter)
             self.given[f] = _pose(gx, gy, yaw + rng.normal(0, 0.002)) if given else None
-            dt = 0.1
+            dt = period
             x += speed * dt * math.cos(yaw)
             y += speed * dt * math.sin(yaw)
             yaw += turn * dt
@@ -149,6 +149,14 @@ def test_odometry_undoes_stretched_and_jittered_ego_poses():
     s = odo.summary()
     assert s["used"] == 11 and s["bridged"] == 0
     assert s["travel_ratio"] == pytest.approx(0.95, abs=0.015)
+
+
+def test_two_hertz_keyframes_are_registered():
+    log = DriveLog(n=5, period=0.5)  # nuScenes-like: 3 m between sweeps
+    odo = lidar_odometry(log)
+    assert all(p.used for p in odo.pairs)
+    dist, turn = _error(_relative(odo.poses, 0, 4), _relative(log.truth, 0, 4))
+    assert dist < 0.05 and turn < 0.2
 
 
 def test_odometry_without_ego_poses_starts_at_the_identity_and_follows_the_drive():
