@@ -56,9 +56,10 @@ def _world(rng: np.random.Generator) -> np.ndarray:
 
 
 class DriveLog(DrivingLog):
-    """A drive through :func:`_world`, a sweep every ``period`` s: true poses ``truth``, the log's own ego poses
-    stretched by ``scale`` with ``jitter`` (m) of noise (None: no ego poses); each sweep keeps
-    a random 60 % of the visible points. ``holes``: frame numbers whose sweep is empty."""
+    """A drive through :func:`_world`, a sweep every ``period`` s: true poses ``truth``, the
+    log's own ego poses stretched by ``scale`` with ``jitter`` (m) of noise (None: no ego
+    poses); each sweep keeps a random 60 % of the visible points. ``holes``: frame numbers
+    whose sweep is empty."""
 
     dataset, name, sensor = "drive", "d0", "fake-lidar"
 
