@@ -201,7 +201,7 @@ def tracks_from_crops(log: DrivingLog, cuts: Iterable[tuple[int, list, list]],
         ego = [log.ego_pose(f) for f in frs]
         if all(e is not None for e in ego):
             meta["ego_poses"] = [np.asarray(e, dtype=np.float64).tolist() for e in ego]
-            meta["ego_pose_source"] = "lidar" if hasattr(log, "odometry") else "given"
+            meta["ego_pose_source"] = log.ego_pose_source
         tracks.append(Track(
             track_id=track_name(log.name, oid), points=[x[1] for x in r],
             poses=np.stack([x[2].pose for x in r]), complete=None,

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -142,9 +142,7 @@ def registration_cloud(points: np.ndarray, config: OdometryConfig | None = None
     range band, float64 (M, 3)."""
     cfg = config or OdometryConfig()
     p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] < 3:
-        p = p.reshape(-1, 3)
-    p = p[:, :3]
+    p = p[:, :3] if p.ndim == 2 else p.reshape(-1, 3)  # (N, C >= 3), or an empty sweep
     p = p[np.all(np.isfinite(p), axis=1)]
     r = np.hypot(p[:, 0], p[:, 1])
     return p[(p[:, 2] > cfg.min_z) & (r > cfg.min_range) & (r < cfg.max_range)]
@@ -152,8 +150,8 @@ def registration_cloud(points: np.ndarray, config: OdometryConfig | None = None
 
 def thin(points: np.ndarray, voxel: float) -> np.ndarray:
     """One point per cube of edge ``voxel`` (the first in order). Only the moving side of a
-    registration is thinned: thinning both sides ties each to its own grid, which biased the
-    registered travel by 0.4 % on a KITTI log."""
+    registration is thinned: thinning both sides ties each to its own grid and biases the
+    registered travel (docs/history/model.md, "Ego poses from the sweeps")."""
     if not len(points):
         return points
     keys = np.floor(points / voxel).astype(np.int64)
@@ -195,14 +193,14 @@ def register(moving: np.ndarray, fixed: np.ndarray, init: np.ndarray | None = No
         step = rigid_fit(moved[ok], fixed[i[ok]])
         T = step @ T
         residual = float(np.median(d[ok]))
-        if (np.linalg.norm(step[:3, 3]) < 1e-4
-                and np.arccos(np.clip((np.trace(step[:3, :3]) - 1) / 2, -1, 1)) < 1e-5):
+        if np.linalg.norm(step[:3, 3]) < 1e-4 and _turn(step) < 1e-5:
             break
     return T, residual
 
 
-def _turn_deg(m: np.ndarray) -> float:
-    return math.degrees(math.acos(float(np.clip((np.trace(m[:3, :3]) - 1.0) / 2.0, -1, 1))))
+def _turn(m: np.ndarray) -> float:
+    """The rotation angle (rad) of the rigid motion ``m (4, 4)``."""
+    return math.acos(float(np.clip((np.trace(m[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
 
 
 def lidar_odometry(log, frames: Sequence[int] | None = None,
@@ -252,7 +250,8 @@ def lidar_odometry(log, frames: Sequence[int] | None = None,
                 elif rel_given is not None and (
                         np.linalg.norm(rel[:3, 3] - rel_given[:3, 3]) > cfg.max_disagreement
                         + cfg.max_disagreement_share * res.given_m
-                        or _turn_deg(np.linalg.inv(rel_given) @ rel) > cfg.max_turn_deg):
+                        or math.degrees(_turn(np.linalg.inv(rel_given) @ rel))
+                        > cfg.max_turn_deg):
                     res.reason = "disagrees with the ego poses"
                 else:
                     res.used = True
@@ -281,10 +280,11 @@ def _scaled_motion(rel: np.ndarray, dt: float, new_dt: float) -> np.ndarray:
 def with_lidar_odometry(log, config: OdometryConfig | None = None,
                         show_progress: bool | None = None):
     """``log`` (in place; returned) with its ``ego_pose(frame)`` replaced by
-    :func:`lidar_odometry` over its frames; the :class:`Odometry` is kept as
-    ``log.odometry``. Frames outside ``log.frames`` get None."""
+    :func:`lidar_odometry` over its frames, ``ego_pose_source`` ``"lidar"``; the
+    :class:`Odometry` is kept as ``log.odometry``. Frames outside ``log.frames`` get None."""
     odo = lidar_odometry(log, config=config, show_progress=show_progress)
     log.ego_pose = OdometryPoses(odo.poses)
+    log.ego_pose_source = "lidar"
     log.odometry = odo
     return log
 
@@ -301,7 +301,3 @@ class OdometryPoses:
         pose = self.poses.get(int(frame))
         return None if pose is None else pose.copy()
 
-
-def config_dict(config: OdometryConfig | None = None) -> dict:
-    """The settings of ``config`` (default: the defaults) as a plain dict, for manifests."""
-    return asdict(config or OdometryConfig())

@@ -218,6 +218,9 @@ class DrivingLog(abc.ABC):
     frames: list[int]
     camera_names: tuple[str, ...] = ()
     default_camera: str | None = None
+    #: Where :meth:`ego_pose` comes from: the log's own poses (``"given"``), or LiDAR odometry
+    #: of its sweeps (``"lidar"``, :func:`seqshape.data.odometry.with_lidar_odometry`).
+    ego_pose_source: str = "given"
 
     def __len__(self) -> int:
         return len(self.frames)
