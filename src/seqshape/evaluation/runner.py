@@ -85,6 +85,7 @@ from seqshape.evaluation.metrics import (
     subsample_pair,
 )
 from seqshape.geometry import canonical_to_sensor, sensor_to_canonical
+from seqshape.model.smooth import world_centres
 from seqshape.vehicles import procedural_vehicle, sample_outer_surface
 
 log = logging.getLogger(__name__)
@@ -467,20 +468,13 @@ def _ref_face_gap(points: np.ndarray, pose, size) -> float:
 
 def world_travel(track: Track) -> float:
     """The track's travel (m): the diagonal of the planar box holding its true centres (frames
-    with a known pose) in the fixed frame of its ego poses (:meth:`Track.ego_pose`); NaN when a
-    frame's ego pose is unknown or no pose is."""
-    centres = []
-    for t in range(len(track)):
-        pose = track.poses[t]
-        if not np.all(np.isfinite(pose)):
-            continue
-        ego = track.ego_pose(t)
-        if ego is None:
-            return np.nan
-        centres.append(ego[:2, :3] @ np.asarray(pose[:3], np.float64) + ego[:2, 3])
-    if not centres:
+    with a known pose) in the fixed frame of its ego poses (:meth:`Track.ego_pose`,
+    :func:`~seqshape.model.smooth.world_centres`); NaN when a frame's ego pose is unknown or
+    no pose is."""
+    known = [t for t in range(len(track)) if np.all(np.isfinite(track.poses[t]))]
+    c = world_centres(np.asarray(track.poses)[known], [track.ego_pose(t) for t in known])
+    if c is None or not len(c):
         return np.nan
-    c = np.asarray(centres)
     return float(np.linalg.norm(c.max(0) - c.min(0)))
 
 
