@@ -96,9 +96,8 @@ GRAPH_OUTPUTS = ("complete", "pose", "hidden_out", "mean_out", "seen_out", "gap_
 ONE_INPUTS = tuple(name for name in GRAPH_INPUTS if name != "lengths")
 ONE_OUTPUTS = GRAPH_OUTPUTS[:4]
 #: Grouping of the tracks of one step by point count (:func:`length_buckets`). At least 32
-#: rows a pass since the refiner joined the graphs (a pass's fixed cost grew): 100 tracks of
-#: 100-300 points 8 %, of 10-300 points (log-uniform) 9 % more updates/s than 16
-#: (docs/history/model.md, "Eighth round").
+#: rows a pass since the refiner joined the graphs (a pass's fixed cost grew; measured in
+#: docs/history/model.md, "Eighth round").
 BUCKET_FILL, BUCKET_MIN_ROWS = 0.75, 32
 #: Encoder rows (tracks x padded points) from which a pass of the ONNX engines runs on
 #: :data:`LARGE_PASS_THREADS` threads when ``threads`` is left at None and a core is free

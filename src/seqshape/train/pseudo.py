@@ -100,9 +100,10 @@ def pseudo_label(tracks: Iterable[Track], estimator, source: str = "",
         else:
             todo.append((i, range(int(det[0]), int(det[-1]) + 1)))
     bar = progress(total=sum(len(f) for _, f in todo), desc="pseudo-labels", unit="frame")
+    step = max(int(chunk), 1)
     try:
-        for k in range(0, len(todo), max(int(chunk), 1)):
-            part = todo[k:k + max(int(chunk), 1)]
+        for k in range(0, len(todo), step):
+            part = todo[k:k + step]
             results = estimate_tracks(estimator, [_track_args(tracks[i], f) for i, f in part],
                                       "offline")
             for (i, frames), est in zip(part, results, strict=True):
