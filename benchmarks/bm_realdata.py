@@ -82,14 +82,14 @@ def extract(dataset: str, root: Path, out: Path, sequences, split_by: str,
 def evaluate(data: Path, out: Path, checkpoint: str, split: str,
              baseline: str = "pretrained", refiner: str = "pretrained",
              mode: str = "online", reuse: bool = False,
-             baseline_refiner: str = "same") -> Path:
+             baseline_refiner: str = "same", size_scale: str = "1") -> Path:
     """``seqshape evaluate`` of one mode into ``out``; returns its ``per_frame.csv``."""
     if reuse and (out / "per_frame.csv").exists():
         return out / "per_frame.csv"
     argv = ["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
             "--baseline", baseline, "--refiner", refiner, "--baseline-refiner", baseline_refiner,
             "--split", split, "--workers", "1",
-            "--emd-every", "0", "--view", "none"]
+            "--emd-every", "0", "--view", "none", "--size-scale", size_scale]
     argv += {"online": [], "causal": ["--smoothing", "causal"], "offline": ["--offline"]}[mode]
     if _quiet(argv) != 0:
         sys.exit(f"seqshape evaluate ({mode}) failed on {data}")
@@ -199,14 +199,31 @@ def run_source(name: str, dataset: str, root: Path, work: Path, args) -> dict | 
     for mode in args.modes:
         per_frame = evaluate(data, work / f"eval_{mode}", args.checkpoint, "all",
                              args.baseline, args.refiner, mode, args.reuse,
-                             args.baseline_refiner)
+                             args.baseline_refiner, args.size_scale)
         frames = read_frames(per_frame)
+        if mode == args.modes[0]:
+            print_size_scale(name, per_frame.parent / "metrics.json")
         rows[f"sequential {mode}"] = frames["sequential"]
         if mode == args.modes[0]:  # the baseline and the box fit do not change with the mode
             for m in ("baseline", "boxfit"):
                 if m in frames:
                     rows[m] = frames[m]
     return summarise(rows)
+
+
+def print_size_scale(name: str, metrics: Path) -> None:
+    """The size scales ``seqshape evaluate --size-scale`` used (its settings), if any."""
+    try:
+        scales = json.loads(metrics.read_text()).get("settings", {}).get("size_scale")
+    except (OSError, ValueError):
+        return
+    for method, cal in (scales or {}).items():
+        if isinstance(cal, dict):
+            print(f"{name}: {method} size scale {cal['scale']:.3f} (car length seen whole "
+                  f"{_f(cal['length'], 3)} m on {cal['tracks']} tracks, {cal['frames']} "
+                  f"frames; prior {cal['prior']:.3f} m){' - ' + cal['reason'] if cal['reason'] else ''}")
+        else:
+            print(f"{name}: {method} size scale {cal}")
 
 
 def print_source(name: str, s: dict) -> None:
@@ -315,6 +332,9 @@ def main() -> int:
     ap.add_argument("--ego-poses", default="given", choices=("given", "lidar"),
                     help="the tracks' ego poses (seqshape tracks --ego-poses): the logs' own "
                          "or LiDAR odometry of their sweeps")
+    ap.add_argument("--size-scale", default="1",
+                    help="seqshape evaluate --size-scale: a number, or 'auto' (each network's "
+                         "scale calibrated on the source's own tracks, without labels)")
     ap.add_argument("--finetune-labels", default="annotations",
                     choices=("annotations", "pseudo"),
                     help="what --finetune-steps tunes on: the log's annotated references, or "

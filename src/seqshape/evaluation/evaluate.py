@@ -26,12 +26,14 @@ from seqshape.errors import ConfigError
 from seqshape.evaluation.html import write_track_html
 from seqshape.evaluation.plots import write_plots
 from seqshape.evaluation.report import write_metrics
-from seqshape.evaluation.runner import evaluate_tracks
+from seqshape.evaluation.runner import detection_span, evaluate_tracks, track_kwargs
 from seqshape.model.boxfit import BoxFitEstimator
+from seqshape.model.calibration import calibrate_size
 from seqshape.model.engine import BACKENDS
 from seqshape.model.estimator import SMOOTHING, Estimator
 from seqshape.model.offline import OfflineEstimator
 from seqshape.model.placement import load_refiner
+from seqshape.model.size_scale import check_size_scale
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +80,13 @@ class EvaluateConfig:
         average of its past shapes; docs/model.md,
         "Causal pose smoothing (online)"). The per-frame baseline stays per frame, and the
         offline mode has its own whole-track smoothing, so it is refused with --offline.
+    size_scale: the world scale both networks see (Estimator.size_scale; seqshape.model
+        .calibration): a number (1: off, the default), or 'auto': each network's scale found
+        from the evaluated tracks themselves, without their labels (calibrate_size: the median
+        length of the car tracks where a frame shows the whole car, against the same figure on
+        the network's training data). For a log whose cars are shorter or longer than the
+        synthetic fleet's; evaluate one region and sensor at a time. The scale found is written
+        to metrics.json (settings).
     """
 
     split: str = "auto"
@@ -98,8 +107,11 @@ class EvaluateConfig:
     baseline_refiner: str = "same"
     max_points: int | None = None
     smoothing: str = "none"
+    size_scale: str = "1"
 
     def __post_init__(self):
+        if self.size_scale != "auto":
+            check_size_scale(self.size_scale, "--size-scale (a number or 'auto')")
         if self.backend not in BACKENDS:
             raise ConfigError(f"--backend {self.backend!r}: choose from {', '.join(BACKENDS)}")
         if self.max_tracks is not None and self.max_tracks < 1:
@@ -174,6 +186,10 @@ def evaluate_to(out: Path, dataset, estimators: dict, max_tracks: int | None = N
                              emd_every=emd_every, batch_tracks=batch_tracks, workers=workers,
                              floor=floor, seed=seed, hints=hints)
     result.settings["seconds"] = round(time.perf_counter() - t0, 1)
+    scales = {name: size_setting(est) for name, est in estimators.items()
+              if size_setting(est) is not None}
+    if scales:
+        result.settings["size_scale"] = scales
     result.settings["data"] = str(dataset.path)
     summary = write_metrics(out, result)
     mode_note(out / "metrics.md", result.settings.get("modes", {}))
@@ -182,6 +198,18 @@ def evaluate_to(out: Path, dataset, estimators: dict, max_tracks: int | None = N
     if track is not None:
         write_track_html(out / "track_view.html", track, estimators)
     return summary
+
+
+def size_setting(est) -> dict | float | None:
+    """What ``settings["size_scale"]`` records of one method: its calibration
+    (:class:`~seqshape.model.calibration.SizeCalibration` as a dict), its fixed scale when not
+    1, else None (the box fit and unscaled networks)."""
+    inner = getattr(est, "estimator", est)
+    cal = getattr(inner, "size_calibration", None)
+    if cal is not None:
+        return cal.to_dict()
+    k = getattr(inner, "size_scale", 1.0)
+    return None if k == 1.0 else k
 
 
 def mode_note(path: Path, modes: dict) -> None:
@@ -204,6 +232,8 @@ def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfi
                   "baseline": load_estimator(baseline, "baseline", cfg.backend, cfg.max_points,
                                              base_refiner)}
     estimators["sequential"].smoothing = cfg.smoothing
+    for est in estimators.values():
+        set_size_scale(est, cfg.size_scale, dataset, cfg.max_tracks, cfg.hints)
     if cfg.offline:
         estimators["sequential"] = OfflineEstimator(estimators["sequential"])
     use_boxfit = dataset_is_real(dataset) if cfg.boxfit is None else cfg.boxfit
@@ -212,6 +242,31 @@ def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfi
         estimators["boxfit"] = BoxFitEstimator(method=cfg.boxfit_method, num_complete=k,
                                                seed=cfg.seed)
     return estimators
+
+
+def set_size_scale(est: Estimator, spec: str, dataset, max_tracks: int | None = None,
+                   hints: bool = True) -> None:
+    """``est.size_scale`` from ``spec``: a number, or ``"auto"``: :func:`~seqshape.model
+    .calibration.calibrate_size` over the tracks to evaluate (the first ``max_tracks``; with
+    ``hints`` their classes and ego poses, as the evaluation feeds them), recorded as
+    ``est.size_calibration`` and logged."""
+    if spec != "auto":
+        est.size_scale = check_size_scale(spec, "--size-scale")
+        return
+    n = len(dataset) if max_tracks is None else min(len(dataset), max_tracks)
+    tracks = []
+    for i in range(n):
+        tr = dataset[i]
+        span = detection_span(tr)
+        if span is not None:
+            frames = range(*span)
+            tracks.append({"points": [tr.points[t] for t in frames],
+                           **track_kwargs(est, tr, frames, hints)})
+    cal = calibrate_size(est, tracks)
+    est.size_scale, est.size_calibration = cal.scale, cal
+    log.info("%s: size scale %.3f (%s)", est.kind, cal.scale,
+             cal.reason or f"car length {cal.length:.2f} m seen whole on {cal.tracks} tracks, "
+                           f"{cal.prior:.2f} m on the training data")
 
 
 def evaluate_dataset(data, checkpoint: str, baseline: str, out,

@@ -72,6 +72,13 @@ from seqshape.model.engine import (
 from seqshape.model.heading import HeadingConfig, HeadingFilter, wrap_angle
 from seqshape.model.network import DEFAULT_FRAME_PERIOD, ShapePoseNet
 from seqshape.model.placement import apply_corrections, delta, load_refiner
+from seqshape.model.size_scale import (
+    check_size_scale,
+    scale_ego,
+    scale_of,
+    scale_size,
+    unscale_estimate,
+)
 from seqshape.model.smooth import CausalSmoother
 from seqshape.model.weights import (  # noqa: F401 (re-exported: the names' former home)
     KINDS,
@@ -236,15 +243,28 @@ class Estimator:
             (docs/model.md, "Causal pose smoothing (online)") and costs about 0.1-0.2 ms per
             track and step with 100 live tracks. An attribute: set it after loading too
             (before a track's first step).
+        size_scale: the world scale the networks see (default 1; :attr:`size_scale`): every
+            input times it, every estimate over it, for a log whose vehicles are shorter
+            (``> 1``) or longer than the training fleet's;
+            :func:`~seqshape.model.calibration.calibrate_size` finds it from the log's own
+            tracks. An attribute: set it after loading too (before a track's first step).
     """
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None, seed: int = 0,
                  metrics: dict | None = None, heading: HeadingConfig | None = None,
                  frame_period: float = DEFAULT_FRAME_PERIOD, backend: str = "torch",
-                 refiner: Any = None, max_points: int | None = None, smoothing: str = "none"):
+                 refiner: Any = None, max_points: int | None = None, smoothing: str = "none",
+                 size_scale: float = 1.0):
         self.model = model.eval()
         self.refiner = refiner
         self.smoothing = smoothing
+        self.size_scale = size_scale
+        #: The weights file the estimator was loaded from (None: built from a model object);
+        #: :func:`~seqshape.model.calibration.size_prior` looks the shipped ones up by it.
+        self.weights_file: Path | None = None
+        #: The :class:`~seqshape.model.calibration.SizeCalibration` that set
+        #: :attr:`size_scale`, when one did (``seqshape evaluate --size-scale auto``).
+        self.size_calibration = None
         if max_points is not None and (isinstance(max_points, bool) or not (
                 isinstance(max_points, int | np.integer) and max_points >= 1)):
             raise ConfigError(f"max_points must be a whole number >= 1 or None, got "
@@ -281,7 +301,8 @@ class Estimator:
                         heading: HeadingConfig | None = None,
                         frame_period: float = DEFAULT_FRAME_PERIOD,
                         backend: str = "auto", refiner: Any = "pretrained",
-                        max_points: int | None = None, smoothing: str = "none") -> Estimator:
+                        max_points: int | None = None, smoothing: str = "none",
+                        size_scale: float = 1.0) -> Estimator:
         """Load a training checkpoint or an exported ``model.pt`` (CPU inference).
         ``refiner``: the placement refiner, a :class:`~seqshape.model.placement.
         PlacementRefiner` or a spec of :func:`~seqshape.model.placement.load_refiner`:
@@ -292,26 +313,30 @@ class Estimator:
         if device != "cpu":
             raise ConfigError(f"Estimator runs on the CPU; got device {device!r}")
         payload = read_model_file(path)
-        return cls(build_model(payload, path), threads, seed, payload.get("metrics"), heading,
-                   frame_period, backend, _refiner(refiner), max_points, smoothing)
+        est = cls(build_model(payload, path), threads, seed, payload.get("metrics"), heading,
+                  frame_period, backend, _refiner(refiner), max_points, smoothing, size_scale)
+        est.weights_file = Path(path)
+        return est
 
     @classmethod
     def from_pretrained(cls, kind: str = "sequential", threads: int | None = None,
                         seed: int = 0, heading: HeadingConfig | None = None,
                         frame_period: float = DEFAULT_FRAME_PERIOD,
                         backend: str = "auto", refiner: Any = "pretrained",
-                        max_points: int | None = None, smoothing: str = "none") -> Estimator:
+                        max_points: int | None = None, smoothing: str = "none",
+                        size_scale: float = 1.0) -> Estimator:
         """The shipped weights ``seqshape/pretrained/<kind>.pt``."""
         return cls.from_checkpoint(pretrained_path(kind), threads=threads, seed=seed,
                                    heading=heading, frame_period=frame_period, backend=backend,
-                                   refiner=refiner, max_points=max_points, smoothing=smoothing)
+                                   refiner=refiner, max_points=max_points, smoothing=smoothing,
+                                   size_scale=size_scale)
 
     @classmethod
     def load(cls, spec: str | Path, *, kind: str | None = None, threads: int | None = None,
              device: str = "cpu", seed: int = 0, heading: HeadingConfig | None = None,
              frame_period: float = DEFAULT_FRAME_PERIOD, backend: str = "auto",
              refiner: Any = "pretrained", max_points: int | None = None,
-             smoothing: str = "none") -> Estimator:
+             smoothing: str = "none", size_scale: float = 1.0) -> Estimator:
         """The estimator named by ``spec``: a shipped name or a weights path.
 
         ``spec``: ``"sequential"`` / ``"baseline"`` (the shipped weights), ``"pretrained"``
@@ -326,7 +351,7 @@ class Estimator:
         """
         path = resolve_weights(spec, kind or "sequential")
         est = cls.from_checkpoint(path, device, threads, seed, heading, frame_period, backend,
-                                  refiner, max_points, smoothing)
+                                  refiner, max_points, smoothing, size_scale)
         if kind is not None and est.kind != kind:
             raise ConfigError(f"{spec} holds a {est.kind} model, not a {kind} one")
         return est
@@ -341,6 +366,20 @@ class Estimator:
         if value not in SMOOTHING:
             raise ConfigError(f"smoothing must be one of {SMOOTHING}, got {value!r}")
         self._smoothing = value
+
+    @property
+    def size_scale(self) -> float:
+        """The world scale the networks see (default 1): every input (points, ego
+        translations, size hints) times it before the networks, every estimate (shape, centre)
+        over it after, so that a log whose vehicles are smaller than the training fleet's
+        (``size_scale > 1``) is seen at the fleet's sizes (:mod:`seqshape.model.calibration`;
+        :func:`~seqshape.model.calibration.calibrate_size` finds it from a log's own tracks).
+        An attribute: set it before a track's first step, and keep it for the track."""
+        return self._size_scale
+
+    @size_scale.setter
+    def size_scale(self, value: float) -> None:
+        self._size_scale = check_size_scale(value)
 
     @property
     def recurrent(self) -> bool:
@@ -679,6 +718,21 @@ class Estimator:
         points = [check_points(p, f"point_lists[{i}] (track {t!r})")
                   for i, (t, p) in enumerate(zip(track_ids, point_lists, strict=True))]
         _check_hints(len(track_ids), sizes, classes, ego_poses, timestamps)
+        if self._size_scale != 1.0:  # cars seen at the fleet's sizes, the answers in metres
+            ks = [scale_of(self._size_scale, None if classes is None else classes[i])
+                  for i in range(len(track_ids))]
+            points = [p * np.float32(k) for p, k in zip(points, ks, strict=True)]
+            sizes = None if sizes is None else [scale_size(s, k) for s, k in
+                                                zip(sizes, ks, strict=True)]
+            ego_poses = None if ego_poses is None else [scale_ego(e, k) for e, k in
+                                                        zip(ego_poses, ks, strict=True)]
+            return [unscale_estimate(e, k) for e, k in zip(self._step(
+                track_ids, points, sizes, classes, ego_poses, timestamps), ks, strict=True)]
+        return self._step(track_ids, points, sizes, classes, ego_poses, timestamps)
+
+    def _step(self, track_ids: list[str], points: list[np.ndarray], sizes, classes, ego_poses,
+              timestamps) -> list[Estimate]:
+        """:meth:`step` after its checks, in the networks' world (:attr:`size_scale`)."""
         fresh = [t for t in track_ids if t not in self._states]
         states = [self._state(t) for t in track_ids]
         kept = [(st.length, st.last_time) for st in states]

@@ -73,6 +73,7 @@ from seqshape.model.heading import (
     pose_yaw,
     wrap_angle,
 )
+from seqshape.model.size_scale import scale_ego, scale_of, scale_size, unscale_estimate
 from seqshape.model.smooth import (
     MAX_GAP,
     SHAPE_DECAY,
@@ -229,7 +230,10 @@ def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
     if int(chunk_frames) < 1:
         raise ConfigError(f"chunk_frames must be >= 1, got {chunk_frames!r}")
     cfg = config or OfflineConfig()
-    preps = [_prepare(estimator, _track_args(track, i)) for i, track in enumerate(tracks)]
+    k = float(getattr(estimator, "size_scale", 1.0))
+    args = [_track_args(track, i) for i, track in enumerate(tracks)]
+    ks = [scale_of(k, a["cls"]) for a in args]  # cars only (Estimator.size_scale)
+    preps = [_prepare(estimator, a, kt) for a, kt in zip(args, ks, strict=True)]
     live = [p for p in preps if p.frames]
     model = estimator.model
     for p, first in zip(live, _run_many(model, [_Pass(p.frames, p.scales, p.motion)
@@ -250,7 +254,10 @@ def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
     for (p, key), job, out in zip(owners, jobs, _run_many(model, jobs, chunk_frames),
                                   strict=True):
         p.passes[key] = _refined(estimator, job.frames, out)
-    return [_assemble(estimator, p, cfg, p in offline) if p.frames else [] for p in preps]
+    out = [_assemble(estimator, p, cfg, p in offline) if p.frames else [] for p in preps]
+    if k != 1.0:  # the networks saw cars at the fleet's sizes (Estimator.size_scale)
+        out = [[unscale_estimate(e, kt) for e in ests] for ests, kt in zip(out, ks, strict=True)]
+    return out
 
 
 @dataclass(eq=False)
@@ -293,18 +300,25 @@ def _track_args(track: Mapping, i: int) -> dict:
             "track_id": "track", **track}
 
 
-def _prepare(estimator, args: dict) -> _Track:
-    """The checked inputs of one track (:func:`estimate_track`'s arguments)."""
+def _prepare(estimator, args: dict, k: float = 1.0) -> _Track:
+    """The checked inputs of one track (:func:`estimate_track`'s arguments), in a world
+    scaled by ``k`` (:attr:`Estimator.size_scale <seqshape.model.Estimator.size_scale>`)."""
     track_id = args["track_id"]
     frames, raw = _frames(estimator, args["points"], track_id)
     n = len(frames)
     egos = _ego_list(args["ego_poses"], n) if n else None
     times = _times(args["timestamps"], n) if n else None
     model = estimator.model
-    scales = _scales(model, frames, args["size"], args["cls"]) if n else None
+    size = args["size"]
+    if k != 1.0:
+        frames = [f * np.float32(k) for f in frames]
+        egos = None if egos is None else [scale_ego(e, k) for e in egos]
+        _length_hint([size], 0)  # its error before it is scaled
+        size = scale_size(size, k)
+    scales = _scales(model, frames, size, args["cls"]) if n else None
     return _Track(track_id, frames, raw, egos, times,
                   np.array([len(f) for f in frames], dtype=np.int64), scales,
-                  _motion(estimator, raw, times) if n else {}, args["size"], args["cls"])
+                  _motion(estimator, raw, times) if n else {}, size, args["cls"])
 
 
 def _backward_pass(estimator, p: _Track) -> _Pass:

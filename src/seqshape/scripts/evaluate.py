@@ -21,7 +21,7 @@ from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 HELP = "evaluate shape and pose estimates on a dataset's val split (or a real dataset)"
 FIELDS = ["split", "boxfit", "boxfit_method", "max_tracks", "emd_every", "emd_points", "workers",
           "batch_tracks", "floor", "view", "seed", "offline", "hints", "backend",
-          "refiner", "baseline_refiner", "max_points", "smoothing"]
+          "refiner", "baseline_refiner", "max_points", "smoothing", "size_scale"]
 _MOVED = ("load_estimator", "select_split", "dataset_is_real", "choose_view_track",
           "evaluate_to", "mode_note")
 
