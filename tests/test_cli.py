@@ -20,12 +20,12 @@ from seqshape.scripts.scenes import degrade_config
 from seqshape.sim.degrade import NO_DEGRADE, DegradeConfig
 
 # options added since that release (issue 17: inference backends, labelling workers;
-# label --resume; evaluate and label --max-points; evaluate --smoothing)
+# label --resume; evaluate and label --max-points; evaluate --smoothing, --size-scale)
 ADDED = {"label": {"backend": "auto-float", "workers": 1, "resume": False,
                    "placement": "pretrained", "max_points": None, "image_size": None,
                    "ego_poses": "given"},
          "evaluate": {"backend": "auto-float", "refiner": "pretrained", "max_points": None,
-                      "smoothing": "none", "baseline_refiner": "same"},
+                      "smoothing": "none", "baseline_refiner": "same", "size_scale": "1"},
          "tracks": {"ego_poses": "given"}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses
