@@ -150,6 +150,17 @@ INT8_STEP_LAYERS = ("shape_decoder", "mlp2_rest")
 #: split layer too (``refiner_split``, 28 % of its multiply-adds; one scale per point): within
 #: the bound on seeds 0, 1, 2, 5, but the baseline's paper-val translation moved 0.5 %.
 INT8_REFINER_LAYERS = ("refiner_rest",)
+#: Layers of the batched graph quantised on one scale per track over a frame's rows
+#: (:func:`~seqshape.model.int8.quantize_onnx`'s ``rows``), where the graph has the encoder's
+#: form: the first MLP's last layer, whose per-point output only feeds the max-pool into the
+#: global feature (scale and bias after the pool), its input ReLU's channels equalised first.
+#: Measured (issue 47, session 34; docs/history/model.md, "Ninth round"): a 100-track step's
+#: passes about 5 % faster, within :data:`INT8_NOISE`'s bound on :func:`car_stream` seeds 0,
+#: 1, 2, 5 for both shipped networks with and without the refiner (worst 0.58 of it). Not
+#: kept: the folded split layer on the same quantised rows as well (``rows``' split form,
+#: 11-15 % faster): the shipped baseline with the refiner then leaves the bound at the 90th
+#: percentile of yaw on a 24-track stream (1.09-1.18 of it).
+INT8_ROW_LAYERS = ("mlp1",)
 #: ONNX opset of the export.
 ONNX_OPSET = 17
 #: Agreement of a fast backend with the reference: shape points (m), pose centre (m), yaw
@@ -893,12 +904,15 @@ class OnnxInt8Engine(OnnxEngine):
     noise = INT8_NOISE
 
     def graph_bytes(self, model: ShapePoseNet, net: nn.Module | None = None) -> bytes:
+        rows = int8_row_layers(model)
+        tag = f"{','.join(INT8_STEP_LAYERS)};rows:{','.join(rows)}"
         if net is not None:
             layers = INT8_STEP_LAYERS + INT8_REFINER_LAYERS
-            return cached_graph(_Pair(model, net), f"step+refiner-int8:{','.join(layers)}",
-                                lambda: quantize_onnx(export_onnx(model, refiner=net), layers))
-        return cached_graph(model, f"step-int8:{','.join(INT8_STEP_LAYERS)}",
-                            lambda: quantize_onnx(export_onnx(model), INT8_STEP_LAYERS))
+            key = f"step+refiner-int8:{tag};{','.join(INT8_REFINER_LAYERS)}"
+            return cached_graph(_Pair(model, net), key, lambda: quantize_onnx(
+                export_onnx(model, refiner=net), layers, rows))
+        return cached_graph(model, f"step-int8:{tag}",
+                            lambda: quantize_onnx(export_onnx(model), INT8_STEP_LAYERS, rows))
 
     def one_graph_bytes(self, model: ShapePoseNet, net: nn.Module | None = None) -> bytes:
         if net is not None:
@@ -908,6 +922,12 @@ class OnnxInt8Engine(OnnxEngine):
         return cached_graph(model, f"one-int8:{','.join(INT8_LAYERS)}",
                             lambda: quantize_onnx(export_onnx(model, one_track=True),
                                                   INT8_LAYERS))
+
+
+def int8_row_layers(model: ShapePoseNet) -> tuple[str, ...]:
+    """:data:`INT8_ROW_LAYERS` with the first MLP's last layer named for ``model``'s depth
+    (``mlp1.2`` for two layers)."""
+    return tuple(f"{name}.{len(model.encoder.mlp1) - 1}" for name in INT8_ROW_LAYERS)
 
 
 class _Session:
