@@ -376,9 +376,8 @@ def test_int8_quantises_the_shape_decoder_and_the_encoders_last_layers():
     assert len(per_track) == 1  # the encoder's pooled layer: one scale per track
     engine = onnx.load_from_string(engine_module.OnnxInt8Engine(net).graph_bytes(net))
     products = [n.name for n in engine.graph.node if n.op_type == "MatMulIntegerToFloat"]
-    assert len(products) == len(ints) + 1  # and the first MLP's last layer, on its rows
-    assert not any(n.name.startswith(f"/mlp1.{len(net.encoder.mlp1) - 1}/")
-                   for n in engine.graph.node)
+    assert len(products) == len(ints) + 1  # and the folded split layer, on its rows
+    assert not any(n.name.startswith("/mlp2_split/") for n in engine.graph.node)
     one = onnx.load_from_string(quantize_onnx(export_onnx(net, one_track=True), INT8_LAYERS))
     assert [n.op_type for n in one.graph.node].count("MatMulIntegerToFloat") == \
         len(net.shape_decoder) // 2 + 1
@@ -633,7 +632,8 @@ def _row_layers_graph(w0, b0, w1, b1, wx, wg, bg, w2, b2, points: int) -> bytes:
     return h.make_model(graph, opset_imports=[h.make_opsetid("", 17)]).SerializeToString()
 
 
-def test_int8_row_layers_against_a_numpy_reference():
+@pytest.mark.parametrize("with_sample", [False, True])
+def test_int8_row_layers_against_a_numpy_reference(with_sample):
     """The encoder's first-MLP layer into the global feature and its folded split layer on one
     scale per track (``quantize_onnx(..., rows=...)``), the next layer in int8 as before: ONNX
     Runtime against the arithmetic written out in numpy (the ReLU's channels equalised, its
@@ -655,8 +655,9 @@ def test_int8_row_layers_against_a_numpy_reference():
     x = (rng.normal(0, 1, (batch, points, 3)) * rng.uniform(0.1, 20, (batch, 1, 1))
          ).astype(np.float32)
     x[1] = 0.0  # a track of zeros
+    sample = rng.normal(0, 2, (50, 3)).astype(np.float32) if with_sample else None
     graph = _row_layers_graph(w0, b0, w1, b1, wx, wg, bg, w2, b2, points)
-    quant = quantize_onnx(graph, ("rest",), rows=("first", "split"))
+    quant = quantize_onnx(graph, ("rest",), rows=("first", "split"), sample=sample)
     onnx = pytest.importorskip("onnx")
     ops = [n.op_type for n in onnx.load_from_string(quant).graph.node]
     assert ops.count("MatMulIntegerToFloat") == 3 and ops.count("QuantizeLinear") == 2
@@ -670,8 +671,11 @@ def test_int8_row_layers_against_a_numpy_reference():
         s = np.where(s > 0, s, 1.0).astype(np.float32)
         return np.clip(np.rint(m / s[:, None]), -127, 127), s
 
-    # the ReLU's channels equalised: each divided by its largest value on the unit cube
-    gain = (np.abs(w0).sum(axis=1) + np.abs(b0)).astype(np.float32)
+    # the ReLU's channels equalised: each divided by its largest value on the sample (else
+    # on the unit cube)
+    gain = (np.maximum(sample @ w0.T + b0, 0).max(axis=0) if with_sample
+            else np.abs(w0).sum(axis=1) + np.abs(b0)).astype(np.float32)
+    gain = np.where(gain > 0, gain, 1.0).astype(np.float32)
     hh = np.maximum(x @ (w0 / gain[:, None]).T + b0 / gain, 0)  # (B, P, K)
     s = (np.maximum(hh.reshape(batch, -1).max(axis=1), 1e-30) / np.float32(127)).astype(
         np.float32)
@@ -698,3 +702,8 @@ def test_int8_row_layers_against_a_numpy_reference():
     # without the pooled layer after it, the split layer is left float (no per-point rescale)
     alone = onnx.load_from_string(quantize_onnx(graph, ("first",), rows=("split",)))
     assert "/split/MatMul" in [n.name for n in alone.graph.node]
+    # the split layer alone: the first layer stays float, reading the equalised rows
+    split = quantize_onnx(graph, ("rest",), rows=("split",), sample=sample)
+    got = ort.InferenceSession(split, providers=["CPUExecutionProvider"]).run(None, {"x": x})
+    np.testing.assert_allclose(got[1], ref_g, rtol=1e-4, atol=1e-4 * np.abs(ref_g).max())
+    assert np.all(np.abs(got[0] - ref_y) <= 0.05 * (np.abs(ref_y).max(axis=1, keepdims=True)))

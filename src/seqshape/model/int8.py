@@ -50,7 +50,7 @@ POS_LEVELS, SIGNED_LEVELS, ZP = 127, 63, 64
 
 
 def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None,
-                  rows: tuple[str, ...] = ()) -> bytes:
+                  rows: tuple[str, ...] = (), sample: np.ndarray | None = None) -> bytes:
     """``graph`` (ONNX bytes, e.g. of :func:`seqshape.model.engine.export_onnx`) with the
     matrix products of ``layers`` (node-name prefixes ``/<layer>/``, the submodule names of
     the step graph, e.g. ``"shape_decoder"``; None: every product with a constant weight) in
@@ -73,7 +73,9 @@ def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None,
       (``(B, 1, F)``), ``w_s`` is folded into the next layer's weights before they are
       quantised, and ``s`` joins that layer's scale after its max-pool.
 
-    Products of ``rows`` on the same input share one quantisation of it."""
+    Products of ``rows`` on the same input share one quantisation of it, after its channels
+    are equalised (:func:`_equalise`) with ``sample``, typical inputs ``(M, C)`` of the layer
+    that makes the ReLU's rows (None: the unit cube's bound)."""
     onnx = require("onnx", "the int8 inference backend", "seqshape[fast]")
     helper, numpy_helper = onnx.helper, onnx.numpy_helper
     proto = onnx.load_from_string(graph)
@@ -131,7 +133,8 @@ def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None,
     for j, (x, members) in enumerate(groups.items()):
         first = min((row_forms[id(m)][1] for m in members), key=lambda r: order[id(r)])
         p = f"int8/rows{j}"
-        gain = _equalise(x, members, producer, consumers, weights, numpy_helper, const, p)
+        gain = _equalise(x, members, producer, consumers, weights, numpy_helper, const, p,
+                         sample)
         width = _width(x, members[0], weights, numpy_helper)
         shared = [  # one scale per track over its N x K inputs (N from the reshape's shape)
             helper.make_node("Slice", [first.input[1], const(f"{p}/one", np.array([1])),
@@ -367,14 +370,16 @@ def _row_form(n, producer: dict, consumers: dict, targets: list):
 
 
 def _equalise(x: str, members: list, producer: dict, consumers: dict, weights: dict,
-              numpy_helper, const, p: str) -> np.ndarray:
+              numpy_helper, const, p: str, sample: np.ndarray | None = None) -> np.ndarray:
     """Channel gains (K,) of the ReLU's rows ``x`` shared by ``members``: its producer's
     output channels divided by them (new weights), so that every channel spans about the
     same range before one scale per track quantises them all (cross-layer equalisation,
-    Nagel et al. 2019, ICCV), the members' input rows multiplied by them. The gain of a
-    channel is the largest value it can take for points in the unit cube (the sum of its
-    weights' magnitudes and its bias's); ones where the producer is not a ``Gemm`` of
-    constants or another node reads ``x``."""
+    Nagel et al. 2019, ICCV), the layers reading ``x`` multiplied back (the members before
+    they are quantised, float readers in new weights). The gain of a channel is its largest
+    value on ``sample`` (the producer's typical inputs), or without one the largest it can
+    take on the unit cube (the sum of its weights' magnitudes and its bias's); 1 for a
+    channel that stays 0. Ones where the producer is not a ``Gemm`` of constants or a reader
+    of ``x`` is not a product of a constant weight."""
     relu = producer[x]
     gemm = producer.get(relu.input[0])
     k = _width(x, members[0], weights, numpy_helper)
@@ -390,7 +395,10 @@ def _equalise(x: str, members: list, producer: dict, consumers: dict, weights: d
     w0, b0 = _weight_and_bias(gemm, weights, numpy_helper)  # (C, K), (K,)
     if b0 is None:
         return ones
-    gain = np.abs(w0).sum(axis=0) + np.abs(b0)
+    if sample is not None and np.shape(sample)[-1] == w0.shape[0]:
+        gain = np.maximum(np.asarray(sample, np.float32) @ w0 + b0, 0.0).max(axis=0)
+    else:
+        gain = np.abs(w0).sum(axis=0) + np.abs(b0)
     gain = np.where(gain > 0, gain, 1.0).astype(np.float32)
     _set_weight(gemm, w0 / gain, const, f"{p}/eq_w")
     gemm.input[2] = const(f"{p}/eq_b", (b0 / gain).astype(np.float32))
