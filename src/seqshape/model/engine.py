@@ -155,7 +155,8 @@ INT8_REFINER_LAYERS = ("refiner_rest",)
 #: form: the folded split layer (:func:`fold_split_layer`), its integer sums never rescaled
 #: point by point (its scales divide the global term and fold into ``mlp2_rest``), its input
 #: ReLU's channels equalised on :func:`equalisation_sample` first. Measured (issue 47, session
-#: 34; docs/history/model.md, "Ninth round"): a 100-track step's passes 11-15 % faster, within
+#: 34; docs/history/model.md, "Ninth round"): a 100-track step's passes 0.89x the time on one
+#: thread, 0.94x on two (side by side in one process), within
 #: :data:`INT8_NOISE`'s bound on :func:`car_stream` seeds 0, 1, 2, 5 for both shipped
 #: networks with and without the refiner, the odd test stream and the 24-track one (worst 0.64
 #: of it). Not kept: the first MLP's last layer as well (the baseline with the refiner then
