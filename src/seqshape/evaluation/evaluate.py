@@ -84,7 +84,7 @@ class EvaluateConfig:
         .calibration): a number (1: off, the default), or 'auto': each network's scale found
         from the evaluated tracks themselves, without their labels (calibrate_size: the median
         length of the car tracks where a frame shows the whole car, against the same figure on
-        the network's training data). For a log whose cars are shorter or longer than the
+        the network's training data; never below 1). For a log whose cars are shorter than the
         synthetic fleet's; evaluate one region and sensor at a time. The scale found is written
         to metrics.json (settings).
     """
@@ -186,8 +186,8 @@ def evaluate_to(out: Path, dataset, estimators: dict, max_tracks: int | None = N
                              emd_every=emd_every, batch_tracks=batch_tracks, workers=workers,
                              floor=floor, seed=seed, hints=hints)
     result.settings["seconds"] = round(time.perf_counter() - t0, 1)
-    scales = {name: size_setting(est) for name, est in estimators.items()
-              if size_setting(est) is not None}
+    scales = {name: k for name, est in estimators.items()
+              if (k := size_setting(est)) is not None}
     if scales:
         result.settings["size_scale"] = scales
     result.settings["data"] = str(dataset.path)

@@ -906,15 +906,15 @@ class OnnxInt8Engine(OnnxEngine):
     noise = INT8_NOISE
 
     def graph_bytes(self, model: ShapePoseNet, net: nn.Module | None = None) -> bytes:
-        rows, sample = INT8_ROW_LAYERS, equalisation_sample(model)
+        rows = INT8_ROW_LAYERS
         tag = f"{','.join(INT8_STEP_LAYERS)};rows:{','.join(rows)};eq:cars8x2000"
         if net is not None:
             layers = INT8_STEP_LAYERS + INT8_REFINER_LAYERS
             key = f"step+refiner-int8:{tag};{','.join(INT8_REFINER_LAYERS)}"
             return cached_graph(_Pair(model, net), key, lambda: quantize_onnx(
-                export_onnx(model, refiner=net), layers, rows, sample))
+                export_onnx(model, refiner=net), layers, rows, equalisation_sample(model)))
         return cached_graph(model, f"step-int8:{tag}", lambda: quantize_onnx(
-            export_onnx(model), INT8_STEP_LAYERS, rows, sample))
+            export_onnx(model), INT8_STEP_LAYERS, rows, equalisation_sample(model)))
 
     def one_graph_bytes(self, model: ShapePoseNet, net: nn.Module | None = None) -> bytes:
         if net is not None:

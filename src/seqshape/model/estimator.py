@@ -244,8 +244,8 @@ class Estimator:
             track and step with 100 live tracks. An attribute: set it after loading too
             (before a track's first step).
         size_scale: the world scale the networks see (default 1; :attr:`size_scale`): every
-            input times it, every estimate over it, for a log whose vehicles are shorter
-            (``> 1``) or longer than the training fleet's;
+            input times it, every estimate over it (cars and tracks without a class hint), for
+            a log whose cars are shorter (``> 1``) than the training fleet's;
             :func:`~seqshape.model.calibration.calibrate_size` finds it from the log's own
             tracks. An attribute: set it after loading too (before a track's first step).
     """
@@ -370,8 +370,10 @@ class Estimator:
     @property
     def size_scale(self) -> float:
         """The world scale the networks see (default 1): every input (points, ego
-        translations, size hints) times it before the networks, every estimate (shape, centre)
-        over it after, so that a log whose vehicles are smaller than the training fleet's
+        translations, size hints) of a car or a track without a class hint times it before the
+        networks, its estimates (shape, centre) over it after (other classes keep scale 1,
+        :func:`~seqshape.model.size_scale.scale_of`), so that a log whose cars are smaller
+        than the training fleet's
         (``size_scale > 1``) is seen at the fleet's sizes (:mod:`seqshape.model.calibration`;
         :func:`~seqshape.model.calibration.calibrate_size` finds it from a log's own tracks).
         An attribute: set it before a track's first step, and keep it for the track."""

@@ -133,9 +133,9 @@ def quantize_onnx(graph: bytes, layers: tuple[str, ...] | None = None,
     for j, (x, members) in enumerate(groups.items()):
         first = min((row_forms[id(m)][1] for m in members), key=lambda r: order[id(r)])
         p = f"int8/rows{j}"
-        gain = _equalise(x, members, producer, consumers, weights, numpy_helper, const, p,
-                         sample)
-        width = _width(x, members[0], weights, numpy_helper)
+        width = _width(members[0], weights, numpy_helper)
+        gain = _equalise(x, width, members, producer, consumers, weights, numpy_helper, const,
+                         p, sample)
         shared = [  # one scale per track over its N x K inputs (N from the reshape's shape)
             helper.make_node("Slice", [first.input[1], const(f"{p}/one", np.array([1])),
                                        const(f"{p}/two", np.array([2]))], [f"{p}/N"]),
@@ -369,9 +369,9 @@ def _row_form(n, producer: dict, consumers: dict, targets: list):
     return ("split", resh, (add, layer[0]))
 
 
-def _equalise(x: str, members: list, producer: dict, consumers: dict, weights: dict,
+def _equalise(x: str, k: int, members: list, producer: dict, consumers: dict, weights: dict,
               numpy_helper, const, p: str, sample: np.ndarray | None = None) -> np.ndarray:
-    """Channel gains (K,) of the ReLU's rows ``x`` shared by ``members``: its producer's
+    """Channel gains (K,) of the ReLU's rows ``x`` (``k`` wide) shared by ``members``: its producer's
     output channels divided by them (new weights), so that every channel spans about the
     same range before one scale per track quantises them all (cross-layer equalisation,
     Nagel et al. 2019, ICCV), the layers reading ``x`` multiplied back (the members before
@@ -382,7 +382,6 @@ def _equalise(x: str, members: list, producer: dict, consumers: dict, weights: d
     of ``x`` is not a product of a constant weight."""
     relu = producer[x]
     gemm = producer.get(relu.input[0])
-    k = _width(x, members[0], weights, numpy_helper)
     ones = np.ones(k, np.float32)
     mine = {id(m) for m in members}
     others = [c for c in consumers.get(x, []) if id(c) not in mine]
@@ -415,8 +414,8 @@ def _set_weight(n, w: np.ndarray, const, name: str) -> None:
     n.input[1] = const(name, np.ascontiguousarray(w.T if trans_b else w, dtype=np.float32))
 
 
-def _width(x: str, n, weights: dict, numpy_helper) -> int:
-    """Columns of the rows ``x`` that product ``n`` reads (its weight's input width)."""
+def _width(n, weights: dict, numpy_helper) -> int:
+    """Columns of the rows that product ``n`` reads (its weight's input width)."""
     return int(_weight_and_bias(n, weights, numpy_helper)[0].shape[0])
 
 
