@@ -19,6 +19,8 @@ detection on).
     python benchmarks/bm_realdata.py --dataset av2 --root ROOT     # one source
     python benchmarks/bm_realdata.py --dataset av2 --root ROOT --finetune-steps 300
     python benchmarks/bm_realdata.py --dataset av2 --root ROOT --refiner none --modes online
+    python benchmarks/bm_realdata.py ... --size-scale auto    # each log's size calibration
+    python benchmarks/bm_realdata.py ... --backend onnx-int8  # the streaming engine's graphs
 
 A log a reader cannot open (e.g. a sequence without sweeps) is reported and skipped. Without
 ``--source`` or ``--root`` there is nothing to measure: the script says so and exits 0 (real
@@ -82,14 +84,17 @@ def extract(dataset: str, root: Path, out: Path, sequences, split_by: str,
 def evaluate(data: Path, out: Path, checkpoint: str, split: str,
              baseline: str = "pretrained", refiner: str = "pretrained",
              mode: str = "online", reuse: bool = False,
-             baseline_refiner: str = "same", size_scale: str = "1") -> Path:
+             baseline_refiner: str = "same", size_scale: str = "1",
+             backend: str | None = None) -> Path:
     """``seqshape evaluate`` of one mode into ``out``; returns its ``per_frame.csv``."""
     if reuse and (out / "per_frame.csv").exists():
         return out / "per_frame.csv"
     argv = ["evaluate", "--data", str(data), "--checkpoint", checkpoint, "--out", str(out),
             "--baseline", baseline, "--refiner", refiner, "--baseline-refiner", baseline_refiner,
             "--split", split, "--workers", "1",
-            "--emd-every", "0", "--view", "none", "--size-scale", size_scale]
+            "--emd-every", "0", "--view", "none"]
+    argv += [] if size_scale == "1" else ["--size-scale", size_scale]
+    argv += [] if backend is None else ["--backend", backend]
     argv += {"online": [], "causal": ["--smoothing", "causal"], "offline": ["--offline"]}[mode]
     if _quiet(argv) != 0:
         sys.exit(f"seqshape evaluate ({mode}) failed on {data}")
@@ -199,7 +204,7 @@ def run_source(name: str, dataset: str, root: Path, work: Path, args) -> dict | 
     for mode in args.modes:
         per_frame = evaluate(data, work / f"eval_{mode}", args.checkpoint, "all",
                              args.baseline, args.refiner, mode, args.reuse,
-                             args.baseline_refiner, args.size_scale)
+                             args.baseline_refiner, args.size_scale, args.backend)
         frames = read_frames(per_frame)
         if mode == args.modes[0]:
             print_size_scale(name, per_frame.parent / "metrics.json")
@@ -332,6 +337,9 @@ def main() -> int:
     ap.add_argument("--ego-poses", default="given", choices=("given", "lidar"),
                     help="the tracks' ego poses (seqshape tracks --ego-poses): the logs' own "
                          "or LiDAR odometry of their sweeps")
+    ap.add_argument("--backend", default=None,
+                    help="seqshape evaluate --backend (default: evaluate's own, auto-float); "
+                         "e.g. onnx-int8 for the streaming engine's int8 graphs")
     ap.add_argument("--size-scale", default="1",
                     help="seqshape evaluate --size-scale: a number, or 'auto' (each network's "
                          "scale calibrated on the source's own tracks, without labels)")
