@@ -219,9 +219,10 @@ def calibrate_size(estimator, tracks: Sequence[Mapping], prior: float | None = N
                                f"{int(min_tracks)} needed")
     length = float(np.median(lengths))
     lo, hi = SCALE_LIMITS
-    if prior / length < lo:
-        return SizeCalibration(lo, length, prior, len(lengths), frames,
-                               f"the log's cars measure {length:.2f} m, longer than the "
-                               f"training data's {prior:.2f} m: not scaled down")
-    return SizeCalibration(float(min(prior / length, hi)), length, prior, len(lengths),
-                           frames)
+    k = prior / length
+    if k >= lo:
+        return SizeCalibration(float(min(k, hi)), length, prior, len(lengths), frames)
+    longer = k < lo - 1e-3  # not the prior's own figure (it is kept to the millimetre)
+    return SizeCalibration(lo, length, prior, len(lengths), frames,
+                           f"the log's cars measure {length:.3f} m, longer than the training "
+                           f"data's {prior:.3f} m: not scaled down" if longer else "")
