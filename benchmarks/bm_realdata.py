@@ -21,6 +21,7 @@ detection on).
     python benchmarks/bm_realdata.py --dataset av2 --root ROOT --refiner none --modes online
     python benchmarks/bm_realdata.py ... --size-scale auto    # each log's size calibration
     python benchmarks/bm_realdata.py ... --backend onnx-int8  # the streaming engine's graphs
+    python benchmarks/bm_realdata.py ... --track-memory none  # online without the track memory
 
 A log a reader cannot open (e.g. a sequence without sweeps) is reported and skipped. Without
 ``--source`` or ``--root`` there is nothing to measure: the script says so and exits 0 (real
@@ -85,7 +86,7 @@ def evaluate(data: Path, out: Path, checkpoint: str, split: str,
              baseline: str = "pretrained", refiner: str = "pretrained",
              mode: str = "online", reuse: bool = False,
              baseline_refiner: str = "same", size_scale: str = "1",
-             backend: str | None = None) -> Path:
+             backend: str | None = None, track_memory: str = "auto") -> Path:
     """``seqshape evaluate`` of one mode into ``out``; returns its ``per_frame.csv``."""
     if reuse and (out / "per_frame.csv").exists():
         return out / "per_frame.csv"
@@ -95,6 +96,9 @@ def evaluate(data: Path, out: Path, checkpoint: str, split: str,
             "--emd-every", "0", "--view", "none"]
     argv += [] if size_scale == "1" else ["--size-scale", size_scale]
     argv += [] if backend is None else ["--backend", backend]
+    # the track memory is online (the offline mode's passes do not use it)
+    argv += [] if track_memory == "auto" or mode == "offline" else \
+        ["--track-memory", track_memory]
     argv += {"online": [], "causal": ["--smoothing", "causal"], "offline": ["--offline"]}[mode]
     if _quiet(argv) != 0:
         sys.exit(f"seqshape evaluate ({mode}) failed on {data}")
@@ -204,7 +208,8 @@ def run_source(name: str, dataset: str, root: Path, work: Path, args) -> dict | 
     for mode in args.modes:
         per_frame = evaluate(data, work / f"eval_{mode}", args.checkpoint, "all",
                              args.baseline, args.refiner, mode, args.reuse,
-                             args.baseline_refiner, args.size_scale, args.backend)
+                             args.baseline_refiner, args.size_scale, args.backend,
+                             args.track_memory)
         frames = read_frames(per_frame)
         if mode == args.modes[0]:
             print_size_scale(name, per_frame.parent / "metrics.json")
@@ -343,6 +348,9 @@ def main() -> int:
     ap.add_argument("--size-scale", default="1",
                     help="seqshape evaluate --size-scale: a number, or 'auto' (each network's "
                          "scale calibrated on the source's own tracks, without labels)")
+    ap.add_argument("--track-memory", default="auto", choices=("auto", "none", "parked"),
+                    help="seqshape evaluate --track-memory of the online and causal modes "
+                         "(auto: the model's default, 'parked')")
     ap.add_argument("--finetune-labels", default="annotations",
                     choices=("annotations", "pseudo"),
                     help="what --finetune-steps tunes on: the log's annotated references, or "

@@ -25,7 +25,8 @@ ADDED = {"label": {"backend": "auto-float", "workers": 1, "resume": False,
                    "placement": "pretrained", "max_points": None, "image_size": None,
                    "ego_poses": "given"},
          "evaluate": {"backend": "auto-float", "refiner": "pretrained", "max_points": None,
-                      "smoothing": "none", "baseline_refiner": "same", "size_scale": "1"},
+                      "smoothing": "none", "baseline_refiner": "same", "size_scale": "1",
+                      "track_memory": "auto"},
          "tracks": {"ego_poses": "given"}}
 
 # vars(parse_args(argv)) of the release before the options came from the config dataclasses

@@ -215,7 +215,7 @@ def test_offline_track_with_a_hole_stays_near_its_estimates():
     cfg = ModelConfig(num_points=32, encoder1=(16, 32), encoder2=(32, 32), hidden=24,
                       shape_decoder=(32,), pose_decoder=(32,), num_complete=64,
                       shape_frame="canonical")
-    est = Estimator(ShapePoseNet(cfg, recurrent=True), threads=1)
+    est = Estimator(ShapePoseNet(cfg, recurrent=True), threads=1, track_memory="none")
     times = _hole_times()
     truth, _, egos = _drive(times, noise=0.0)
     points = [box_surface(40, k, pose=tuple(truth[k]), dtype=np.float32) for k in range(50)]

@@ -34,8 +34,12 @@ from seqshape.model.estimator import SMOOTHING, Estimator
 from seqshape.model.offline import OfflineEstimator
 from seqshape.model.placement import load_refiner
 from seqshape.model.size_scale import check_size_scale
+from seqshape.model.track_memory import TRACK_MEMORY
 
 log = logging.getLogger(__name__)
+
+#: The values of ``--track-memory``: the model's default, or one of :data:`TRACK_MEMORY`.
+TRACK_MEMORY_CHOICES = ("auto", *TRACK_MEMORY)
 
 
 @dataclass
@@ -87,6 +91,11 @@ class EvaluateConfig:
         the network's training data; never below 1). For a log whose cars are shorter than the
         synthetic fleet's; evaluate one region and sensor at a time. The scale found is written
         to metrics.json (settings).
+    track_memory: the sequential model's track memory (Estimator.track_memory;
+        seqshape.model.track_memory): 'auto' (the model's default: 'parked'), 'parked' (a
+        track that looks parked while the ego moves is fed its earlier frames' points with its
+        new one, through the ego poses) or 'none'. Online only (the offline mode's batched
+        passes do not use it); the per-frame baseline stays per frame.
     """
 
     split: str = "auto"
@@ -108,8 +117,12 @@ class EvaluateConfig:
     max_points: int | None = None
     smoothing: str = "none"
     size_scale: str = "1"
+    track_memory: str = "auto"
 
     def __post_init__(self):
+        if self.track_memory not in TRACK_MEMORY_CHOICES:
+            raise ConfigError(f"--track-memory {self.track_memory!r}: choose from "
+                              f"{', '.join(TRACK_MEMORY_CHOICES)}")
         if self.size_scale != "auto":
             check_size_scale(self.size_scale, "--size-scale (a number or 'auto')")
         if self.backend not in BACKENDS:
@@ -121,6 +134,9 @@ class EvaluateConfig:
         if self.smoothing not in SMOOTHING:
             raise ConfigError(f"--smoothing {self.smoothing!r}: choose from "
                               f"{', '.join(SMOOTHING)}")
+        if self.offline and self.track_memory == "parked":
+            raise ConfigError("--track-memory is for the online mode; --offline runs every "
+                              "frame of a track in one pass")
         if self.offline and self.smoothing != "none":
             raise ConfigError("--smoothing is for the online mode; --offline smooths the "
                               "whole track already")
@@ -186,6 +202,11 @@ def evaluate_to(out: Path, dataset, estimators: dict, max_tracks: int | None = N
                              emd_every=emd_every, batch_tracks=batch_tracks, workers=workers,
                              floor=floor, seed=seed, hints=hints)
     result.settings["seconds"] = round(time.perf_counter() - t0, 1)
+    memory = {name: m for name, est in estimators.items()  # online only
+              if not getattr(est, "whole_track", False)
+              and (m := getattr(est, "track_memory", None))}
+    if memory:
+        result.settings["track_memory"] = memory
     scales = {name: k for name, est in estimators.items()
               if (k := size_setting(est)) is not None}
     if scales:
@@ -232,6 +253,9 @@ def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfi
                   "baseline": load_estimator(baseline, "baseline", cfg.backend, cfg.max_points,
                                              base_refiner)}
     estimators["sequential"].smoothing = cfg.smoothing
+    if cfg.track_memory != "auto":
+        estimators["sequential"].track_memory = cfg.track_memory
+    estimators["baseline"].track_memory = "none"  # per frame
     for est in estimators.values():
         set_size_scale(est, cfg.size_scale, dataset, cfg.max_tracks, cfg.hints)
     if cfg.offline:

@@ -92,13 +92,19 @@ class SizeCalibration:
 
 @contextlib.contextmanager
 def unit_scale(estimator) -> Iterator[None]:
-    """``estimator.size_scale`` set to 1 for the ``with`` block, then restored."""
+    """``estimator.size_scale`` set to 1 and its track memory off for the ``with`` block
+    (the prior was measured so: each frame on its own points), then restored."""
     before = getattr(estimator, "size_scale", 1.0)
+    memory = getattr(estimator, "track_memory", None)
     estimator.size_scale = 1.0
+    if memory is not None:
+        estimator.track_memory = "none"
     try:
         yield
     finally:
         estimator.size_scale = before
+        if memory is not None:
+            estimator.track_memory = memory
 
 
 def frame_lengths(est, points: np.ndarray) -> tuple[float, float]:

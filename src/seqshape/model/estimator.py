@@ -80,6 +80,7 @@ from seqshape.model.size_scale import (
     unscale_estimate,
 )
 from seqshape.model.smooth import CausalSmoother
+from seqshape.model.track_memory import TrackMemory, check_track_memory
 from seqshape.model.weights import (  # noqa: F401 (re-exported: the names' former home)
     KINDS,
     PRETRAINED,
@@ -186,6 +187,7 @@ class _TrackState:
     last: tuple[np.ndarray, np.ndarray, float, Any] | None = None
     correction: np.ndarray | None = None  # the placement refiner's last correction (4,)
     smoother: CausalSmoother | None = None  # smoothing="causal": the track's past estimates
+    memory: TrackMemory | None = None  # track_memory="parked": the track's earlier points
 
 
 class Estimator:
@@ -248,17 +250,25 @@ class Estimator:
             a log whose cars are shorter (``> 1``) than the training fleet's;
             :func:`~seqshape.model.calibration.calibrate_size` finds it from the log's own
             tracks. An attribute: set it after loading too (before a track's first step).
+        track_memory: ``"parked"`` or ``"none"``; None (the default): ``"parked"`` for a
+            recurrent model, ``"none"`` for the per-frame baseline (which stays per frame).
+            ``"parked"``: a track that looks parked while the ego moves (steps given ego
+            poses) is fed half its new frame and half its earlier frames' points, moved by
+            the ego poses into the new sensor frame (:mod:`seqshape.model.track_memory`;
+            docs/model.md, "Track memory"); without ego poses nothing changes. An attribute:
+            set it after loading too (before a track's first step).
     """
 
     def __init__(self, model: ShapePoseNet, threads: int | None = None, seed: int = 0,
                  metrics: dict | None = None, heading: HeadingConfig | None = None,
                  frame_period: float = DEFAULT_FRAME_PERIOD, backend: str = "torch",
                  refiner: Any = None, max_points: int | None = None, smoothing: str = "none",
-                 size_scale: float = 1.0):
+                 size_scale: float = 1.0, track_memory: str | None = None):
         self.model = model.eval()
         self.refiner = refiner
         self.smoothing = smoothing
         self.size_scale = size_scale
+        self.track_memory = track_memory
         #: The weights file the estimator was loaded from (None: built from a model object);
         #: :func:`~seqshape.model.calibration.size_prior` looks the shipped ones up by it.
         self.weights_file: Path | None = None
@@ -302,7 +312,8 @@ class Estimator:
                         frame_period: float = DEFAULT_FRAME_PERIOD,
                         backend: str = "auto", refiner: Any = "pretrained",
                         max_points: int | None = None, smoothing: str = "none",
-                        size_scale: float = 1.0) -> Estimator:
+                        size_scale: float = 1.0, track_memory: str | None = None
+                        ) -> Estimator:
         """Load a training checkpoint or an exported ``model.pt`` (CPU inference).
         ``refiner``: the placement refiner, a :class:`~seqshape.model.placement.
         PlacementRefiner` or a spec of :func:`~seqshape.model.placement.load_refiner`:
@@ -314,7 +325,8 @@ class Estimator:
             raise ConfigError(f"Estimator runs on the CPU; got device {device!r}")
         payload = read_model_file(path)
         est = cls(build_model(payload, path), threads, seed, payload.get("metrics"), heading,
-                  frame_period, backend, _refiner(refiner), max_points, smoothing, size_scale)
+                  frame_period, backend, _refiner(refiner), max_points, smoothing, size_scale,
+                  track_memory)
         est.weights_file = Path(path)
         return est
 
@@ -324,19 +336,21 @@ class Estimator:
                         frame_period: float = DEFAULT_FRAME_PERIOD,
                         backend: str = "auto", refiner: Any = "pretrained",
                         max_points: int | None = None, smoothing: str = "none",
-                        size_scale: float = 1.0) -> Estimator:
+                        size_scale: float = 1.0, track_memory: str | None = None
+                        ) -> Estimator:
         """The shipped weights ``seqshape/pretrained/<kind>.pt``."""
         return cls.from_checkpoint(pretrained_path(kind), threads=threads, seed=seed,
                                    heading=heading, frame_period=frame_period, backend=backend,
                                    refiner=refiner, max_points=max_points, smoothing=smoothing,
-                                   size_scale=size_scale)
+                                   size_scale=size_scale, track_memory=track_memory)
 
     @classmethod
     def load(cls, spec: str | Path, *, kind: str | None = None, threads: int | None = None,
              device: str = "cpu", seed: int = 0, heading: HeadingConfig | None = None,
              frame_period: float = DEFAULT_FRAME_PERIOD, backend: str = "auto",
              refiner: Any = "pretrained", max_points: int | None = None,
-             smoothing: str = "none", size_scale: float = 1.0) -> Estimator:
+             smoothing: str = "none", size_scale: float = 1.0,
+             track_memory: str | None = None) -> Estimator:
         """The estimator named by ``spec``: a shipped name or a weights path.
 
         ``spec``: ``"sequential"`` / ``"baseline"`` (the shipped weights), ``"pretrained"``
@@ -351,7 +365,7 @@ class Estimator:
         """
         path = resolve_weights(spec, kind or "sequential")
         est = cls.from_checkpoint(path, device, threads, seed, heading, frame_period, backend,
-                                  refiner, max_points, smoothing, size_scale)
+                                  refiner, max_points, smoothing, size_scale, track_memory)
         if kind is not None and est.kind != kind:
             raise ConfigError(f"{spec} holds a {est.kind} model, not a {kind} one")
         return est
@@ -366,6 +380,18 @@ class Estimator:
         if value not in SMOOTHING:
             raise ConfigError(f"smoothing must be one of {SMOOTHING}, got {value!r}")
         self._smoothing = value
+
+    @property
+    def track_memory(self) -> str:
+        """``"none"`` or ``"parked"`` (the constructor's argument; None there: ``"parked"``
+        for a recurrent model, ``"none"`` for the baseline)."""
+        return self._track_memory
+
+    @track_memory.setter
+    def track_memory(self, value: str | None) -> None:
+        if value is None:
+            value = "parked" if self.model.recurrent else "none"
+        self._track_memory = check_track_memory(value)
 
     @property
     def size_scale(self) -> float:
@@ -738,6 +764,10 @@ class Estimator:
         fresh = [t for t in track_ids if t not in self._states]
         states = [self._state(t) for t in track_ids]
         kept = [(st.length, st.last_time) for st in states]
+        remember = self._track_memory != "none" and ego_poses is not None
+        given = points
+        if remember:
+            points = self._with_memory(states, points, ego_poses)
         frames, counts = self._frames(states, points)
         scale = self._scales(states, frames, sizes, classes)
         dts = self._dts(states, timestamps) if self.model.motion else None
@@ -765,7 +795,33 @@ class Estimator:
             self._fix_headings(result, states, ego_poses, frames, classes, timestamps)
         if self.smoothing == "causal":
             self._smooth(result, states, ego_poses, timestamps)
+        if remember:
+            self._remember(track_ids, states, given, result, ego_poses)
         return result
+
+    def _with_memory(self, states: list[_TrackState], points: list[np.ndarray],
+                     ego_poses: Sequence) -> list[np.ndarray]:
+        """Each track's frame, with its memory mixed in where it applies
+        (:meth:`~seqshape.model.track_memory.TrackMemory.frame_input`)."""
+        out = []
+        for i, (st, pts) in enumerate(zip(states, points, strict=True)):
+            ego = _ego_pose(ego_poses, i)
+            mixed = None if ego is None or st.memory is None else \
+                st.memory.frame_input(pts, ego, self.max_points)
+            out.append(pts if mixed is None else mixed)
+        return out
+
+    def _remember(self, track_ids: list[str], states: list[_TrackState],
+                  given: list[np.ndarray], result: list[Estimate], ego_poses: Sequence) -> None:
+        """Store each track's frame as given and its estimate's position in its memory."""
+        for i, (st, est) in enumerate(zip(states, result, strict=True)):
+            ego = _ego_pose(ego_poses, i)
+            if ego is None:
+                continue
+            if st.memory is None:
+                st.memory = TrackMemory(np.random.default_rng(
+                    [self.seed, zlib.crc32(track_ids[i].encode("utf-8")), 1]))
+            st.memory.record(given[i], ego, est.pose if est.valid else None)
 
     def _smooth(self, result: list[Estimate], states: list[_TrackState],
                 ego_poses: Sequence | None, timestamps: Sequence | None) -> None:

@@ -53,6 +53,7 @@ between frames: for it offline equals online.
 
 from __future__ import annotations
 
+import copy
 import math
 import zlib
 from collections.abc import Mapping, Sequence
@@ -74,6 +75,7 @@ from seqshape.model.heading import (
     wrap_angle,
 )
 from seqshape.model.size_scale import scale_ego, scale_of, scale_size, unscale_estimate
+from seqshape.model.track_memory import memory_would_feed
 from seqshape.model.smooth import (
     MAX_GAP,
     SHAPE_DECAY,
@@ -239,6 +241,13 @@ def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
     for p, first in zip(live, _run_many(model, [_Pass(p.frames, p.scales, p.motion)
                                                 for p in live], chunk_frames), strict=True):
         p.passes["online"] = _refined(estimator, p.frames, first)
+    # a track the memory feeds: its input depends on its own estimates, so it runs step by
+    # step (Estimator.step, on the estimator's backend), the first pass of the offline mode
+    fed = _memory_fed(estimator, cfg, mode, preps)
+    stepped = dict(zip(fed, _stepped(estimator, [args[i] for i in fed], [ks[i] for i in fed],
+                                     mode == "online"), strict=True))
+    for i, ests in stepped.items():
+        preps[i].passes["online"] = _unflipped(ests)
     offline = [p for p in live if mode == "offline" and model.recurrent and p.counts.any()]
     jobs, owners = [], []
     for p in offline:
@@ -254,9 +263,88 @@ def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
     for (p, key), job, out in zip(owners, jobs, _run_many(model, jobs, chunk_frames),
                                   strict=True):
         p.passes[key] = _refined(estimator, job.frames, out)
-    out = [_assemble(estimator, p, cfg, p in offline) if p.frames else [] for p in preps]
+    out = [stepped[i] if i in stepped and mode == "online"
+           else _assemble(estimator, p, cfg, p in offline) if p.frames else []
+           for i, p in enumerate(preps)]
     if k != 1.0:  # the networks saw cars at the fleet's sizes (Estimator.size_scale)
         out = [[unscale_estimate(e, kt) for e in ests] for ests, kt in zip(out, ks, strict=True)]
+    return out
+
+
+def _memory_fed(estimator, cfg: OfflineConfig, mode: str, preps: list) -> list[int]:
+    """The tracks (indices of ``preps``) whose estimates the track memory would change
+    (``estimator.track_memory`` on, a recurrent model, ego poses): those in which it would
+    feed a frame given the first pass (:func:`~seqshape.model.track_memory.memory_would_feed`;
+    until it feeds one the stream's estimates are the first pass's). Online, or offline with
+    a configuration that takes the first pass alone (no ``two-pass`` or ``bidirectional``
+    network passes); with ``smoothing="causal"`` online every track with ego poses (the
+    memory then sees the smoothed positions)."""
+    if getattr(estimator, "track_memory", "none") == "none" or not estimator.model.recurrent \
+            or (mode == "offline" and (cfg.two_pass or "bidirectional" in (cfg.shape,
+                                                                           cfg.pose))):
+        return []
+    smoothed = mode == "online" and getattr(estimator, "smoothing", "none") != "none"
+    return [i for i, p in enumerate(preps) if p.frames and p.egos is not None and (
+        smoothed or memory_would_feed(p.passes["online"]["pose"], p.egos, p.counts > 0,
+                                      estimator.max_points))]
+
+
+def _unflipped(estimates: list[Estimate]) -> dict:
+    """The first-pass arrays of :func:`estimate_tracks` from a stream's estimates: their
+    shapes and poses before the heading step (a flip turned the yaw only)."""
+    pose = np.stack([e.pose for e in estimates]).astype(np.float64)
+    flipped = np.array([e.flipped for e in estimates])
+    pose[flipped, 3] = wrap_angle(pose[flipped, 3] - math.pi)
+    return {"complete": np.stack([e.complete for e in estimates]), "pose": pose}
+
+
+def _stepped(estimator, args: list[dict], scales: Sequence[float] | None = None,
+             smoothing: bool = True) -> list[list[Estimate]]:
+    """Tracks run through :meth:`Estimator.step <seqshape.model.Estimator.step>` frame by
+    frame (``track_memory``: a frame's input depends on the track's estimates before it), on
+    a copy of ``estimator`` with states of its own; tracks whose ids differ share each step.
+    With ``scales`` (one per track) the tracks are stepped in the world of
+    :attr:`~seqshape.model.Estimator.size_scale` (inputs times the track's scale) and the
+    estimates stay there; without ``smoothing`` the copy does not smooth (an offline first
+    pass)."""
+    twin = copy.copy(estimator)
+    if not smoothing:
+        twin.smoothing = "none"
+    if scales is not None:
+        twin.size_scale = 1.0
+        args = [dict(a, points=[np.asarray(p, dtype=np.float32) * np.float32(k)
+                                for p in a["points"]],
+                     ego_poses=[None if e is None else scale_ego(e, k) for e in a["ego_poses"]],
+                     size=scale_size(a["size"], k)) if k != 1.0 else a
+                for a, k in zip(args, scales, strict=True)]
+    out: list[list[Estimate] | None] = [None] * len(args)
+    pending = list(range(len(args)))
+    while pending:
+        group, ids = [], set()
+        for i in pending:
+            tid = str(args[i]["track_id"])
+            if tid not in ids:
+                group.append(i)
+                ids.add(tid)
+        pending = [i for i in pending if i not in set(group)]
+        twin._states = {}
+        pts = {i: [check_points(p, f"points[{t}] (track {args[i]['track_id']!r})")
+                   for t, p in enumerate(args[i]["points"])] for i in group}
+        n = {i: len(pts[i]) for i in group}
+        egos = {i: _ego_list(args[i]["ego_poses"], n[i]) for i in group}
+        times = {i: _times(args[i]["timestamps"], n[i]) for i in group}
+        for i in group:
+            out[i] = []
+        for t in range(max(n.values())):
+            live = [i for i in group if t < n[i]]
+            res = twin.step([str(args[i]["track_id"]) for i in live], [pts[i][t] for i in live],
+                            sizes=[args[i]["size"] for i in live],
+                            classes=[args[i]["cls"] for i in live],
+                            ego_poses=[None if egos[i] is None else egos[i][t] for i in live],
+                            timestamps=[None if times[i] is None else float(times[i][t])
+                                        for i in live])
+            for i, e in zip(live, res, strict=True):
+                out[i].append(e)
     return out
 
 

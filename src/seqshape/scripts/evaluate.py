@@ -12,7 +12,7 @@ from pathlib import Path
 
 import seqshape.evaluation.evaluate as _evaluate
 from seqshape._deprecated import forward
-from seqshape.evaluation.evaluate import EvaluateConfig, evaluate_dataset
+from seqshape.evaluation.evaluate import TRACK_MEMORY_CHOICES, EvaluateConfig, evaluate_dataset
 from seqshape.evaluation.report import metrics_markdown
 from seqshape.model.engine import BACKENDS
 from seqshape.model.estimator import SMOOTHING
@@ -21,7 +21,7 @@ from seqshape.scripts._config_args import add_config_arguments, config_kwargs
 HELP = "evaluate shape and pose estimates on a dataset's val split (or a real dataset)"
 FIELDS = ["split", "boxfit", "boxfit_method", "max_tracks", "emd_every", "emd_points", "workers",
           "batch_tracks", "floor", "view", "seed", "offline", "hints", "backend",
-          "refiner", "baseline_refiner", "max_points", "smoothing", "size_scale"]
+          "refiner", "baseline_refiner", "max_points", "smoothing", "size_scale", "track_memory"]
 _MOVED = ("load_estimator", "select_split", "dataset_is_real", "choose_view_track",
           "evaluate_to", "mode_note")
 
@@ -38,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          boxfit_method={"choices": ("lshape", "min_area_rect")},
                          floor={"choices": ("auto", "resample", "split")},
                          backend={"choices": BACKENDS},
-                         smoothing={"choices": SMOOTHING})
+                         smoothing={"choices": SMOOTHING},
+                         track_memory={"choices": TRACK_MEMORY_CHOICES})
 
 
 def run(args: argparse.Namespace) -> int:
