@@ -107,8 +107,8 @@ def test_frames_are_stored_capped_and_the_newest_kept():
     for k in range(tm.MEMORY_FRAMES + 5):
         mem.record(rng.normal(size=(tm.FRAME_POINTS * 2, 3)), _ego(float(k)), np.zeros(4))
     assert len(mem) == tm.MEMORY_FRAMES
-    assert all(len(p) == tm.FRAME_POINTS for p in mem._points)
-    assert mem._egos[0][0] == 5.0 and mem._egos[-1][0] == tm.MEMORY_FRAMES + 4
+    assert (mem._counts == tm.FRAME_POINTS).all()
+    assert sorted(mem._egos[:, 0]) == list(range(5, tm.MEMORY_FRAMES + 5))
 
 
 def _net(seed: int = 0) -> ShapePoseNet:
@@ -184,7 +184,7 @@ def test_a_parked_track_is_fed_its_memory_and_estimate_tracks_steps_it():
     # offline: the memory's stream is the first pass of a track with ego poses
     plain = Estimator(net, threads=1, track_memory="none")
     fed, unfed = (estimate_tracks(e, tracks, "offline") for e in (on, plain))
-    assert max(np.abs(a.pose - b.pose).max() for a, b in zip(fed[0], unfed[0])) > 1e-4
+    assert max(np.abs(a.pose - b.pose).max() for a, b in zip(fed[0], unfed[0], strict=True)) > 1e-4
     for a, b in zip(fed[2], unfed[2], strict=True):  # no ego poses: no memory
         np.testing.assert_array_equal(a.pose, b.pose)
 

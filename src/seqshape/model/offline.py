@@ -37,7 +37,12 @@ online heading step does). The default, the measured best, is the track's averag
 with the online pose, smoothed, with the whole-track heading.
 
 ``mode="online"`` reproduces :meth:`Estimator.step` called frame by frame (same resampling of
-large frames, same input scale, same heading step). On a track of one frame every offline
+large frames, same input scale, same heading step). With the estimator's track memory
+(:mod:`seqshape.model.track_memory`, the sequential model's default) a track with ego poses
+that the memory would feed (:func:`~seqshape.model.track_memory.memory_would_feed`, replayed
+on the batched pass) is run through :meth:`Estimator.step` itself, on the estimator's
+backend: online those are its estimates; offline its positions (smoothed as the others) come
+from them and its shape from the batched pass. On a track of one frame every offline
 configuration equals the online estimate. The per-frame baseline has no state to share
 between frames: for it offline equals online.
 
@@ -75,7 +80,6 @@ from seqshape.model.heading import (
     wrap_angle,
 )
 from seqshape.model.size_scale import scale_ego, scale_of, scale_size, unscale_estimate
-from seqshape.model.track_memory import memory_would_feed
 from seqshape.model.smooth import (
     MAX_GAP,
     SHAPE_DECAY,
@@ -91,6 +95,7 @@ from seqshape.model.smooth import (
     track_segments,
     world_centres,
 )
+from seqshape.model.track_memory import memory_would_feed
 
 MODES = ("online", "offline")
 SHAPE_SOURCES = ("online", "final", "two-pass", "bidirectional", "average")
@@ -246,8 +251,8 @@ def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
     fed = _memory_fed(estimator, cfg, mode, preps)
     stepped = dict(zip(fed, _stepped(estimator, [args[i] for i in fed], [ks[i] for i in fed],
                                      mode == "online"), strict=True))
-    for i, ests in stepped.items():
-        preps[i].passes["online"] = _unflipped(ests)
+    for i, ests in stepped.items():  # offline: its positions; the shapes stay the first pass's
+        preps[i].passes["memory"] = _unflipped(ests)
     offline = [p for p in live if mode == "offline" and model.recurrent and p.counts.any()]
     jobs, owners = [], []
     for p in offline:
@@ -436,9 +441,11 @@ def _assemble(estimator, p: _Track, cfg: OfflineConfig, offline: bool) -> list[E
     if "bidirectional" in (cfg.shape, cfg.pose):
         passes["bidirectional"] = _bidirectional(p.frames, first, p.passes["backward"])
     poses = passes[cfg.pose]["pose"].copy()
+    if "memory" in p.passes:  # the track memory's positions (cfg.pose is "online")
+        poses = p.passes["memory"]["pose"].copy()
     # a hole longer than MAX_GAP or a jump no vehicle makes splits the track into segments
     # that no smoothing, shape average or heading vote crosses
-    segments = track_segments(p.times, p.counts > 0, world_centres(first["pose"], p.egos))
+    segments = track_segments(p.times, p.counts > 0, world_centres(poses, p.egos))
     if cfg.smooth:
         poses = _smooth(poses, frame_weights(p.counts, cfg.full_points, cfg.ramp), p.egos,
                         p.times, segments)

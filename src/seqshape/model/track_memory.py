@@ -33,8 +33,6 @@ with the log's oxts poses it does not help (16.1 -> 16.5 cm). Off by default.
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from seqshape.errors import ConfigError
@@ -65,30 +63,34 @@ def check_track_memory(value) -> str:
 
 
 class TrackMemory:
-    """One track's stored points and estimated positions in the fixed frame (module doc)."""
+    """One track's stored points and estimated positions in the fixed frame (module doc), in
+    ring buffers allocated at its first frame (:data:`MEMORY_FRAMES` x :data:`FRAME_POINTS`
+    points, float32 about the first frame's ego position: 0.4 MB a track)."""
 
     def __init__(self, rng: np.random.Generator):
         self.rng = rng  # its own: a track the memory never feeds gets the same subsets as without
-        self._points: deque[np.ndarray] = deque(maxlen=MEMORY_FRAMES)  # (n_i, 3) float64
-        self._egos: deque[np.ndarray] = deque(maxlen=MEMORY_FRAMES)  # (3,) ego positions
-        self._centres: deque[np.ndarray] = deque(maxlen=MEMORY_FRAMES)  # (2,) estimates
+        self._points: np.ndarray | None = None  # (F, P, 3) float32, about _origin
+        self._counts = np.zeros(MEMORY_FRAMES, np.int64)  # points of each slot (0: empty)
+        self._egos = np.zeros((MEMORY_FRAMES, 3))  # each slot's ego position
+        self._origin = np.zeros(3)
+        self._frames = 0  # frames recorded (the newest MEMORY_FRAMES are kept)
+        self._centres = np.zeros((MEMORY_FRAMES, 2))  # estimated positions (ring)
+        self._n_centres = 0
+        self._in_circle = False  # the stored positions within PARK_RADIUS of their median
         self._ego_lo = np.full(3, np.inf)
         self._ego_hi = np.full(3, -np.inf)
 
     def __len__(self) -> int:
         """Frames stored."""
-        return len(self._points)
+        return min(self._frames, MEMORY_FRAMES)
 
     def parked(self, here: np.ndarray) -> bool:
         """Whether the track looks parked and the ego, now at ``here`` (3,), has moved
         (module doc)."""
-        if len(self._centres) < MIN_DETECTIONS or not len(self._points):
+        if not self._in_circle or not self._frames:
             return False
         lo, hi = np.minimum(self._ego_lo, here), np.maximum(self._ego_hi, here)
-        if np.linalg.norm(hi - lo) < MIN_EGO_TRAVEL:
-            return False
-        c = np.asarray(self._centres)
-        return bool(np.linalg.norm(c - np.median(c, axis=0), axis=1).max() <= PARK_RADIUS)
+        return bool(np.linalg.norm(hi - lo) >= MIN_EGO_TRAVEL)
 
     def frame_input(self, points: np.ndarray, ego: np.ndarray, n_max: int
                     ) -> np.ndarray | None:
@@ -99,21 +101,23 @@ class TrackMemory:
         here = np.asarray(ego, dtype=np.float64)
         if not len(points) or not self.parked(here[:3, 3]):
             return None
-        near = [i for i, e in enumerate(self._egos)
-                if np.linalg.norm(e - here[:3, 3]) <= MEMORY_REACH]
-        if not near:
+        near = np.flatnonzero((self._counts > 0) & (np.linalg.norm(
+            self._egos - here[:3, 3], axis=1) <= MEMORY_REACH))
+        if not len(near):
             return None
         rng = self.rng
         n_cur = min(len(points), max(1, int(n_max * CURRENT_SHARE)))
         cur = points if n_cur == len(points) else \
             points[np.sort(rng.choice(len(points), n_cur, replace=False))]
-        pool = np.concatenate([self._points[i] for i in near])
-        n_old = min(len(pool), n_max - n_cur)
+        ends = np.cumsum(self._counts[near])
+        n_old = min(int(ends[-1]), n_max - n_cur)
         if n_old < 1:
             return None
-        old = pool[rng.choice(len(pool), n_old, replace=False)]
+        pick = rng.choice(int(ends[-1]), n_old, replace=False)  # over the near frames' points
+        slot = np.searchsorted(ends, pick, side="right")
+        old = self._points[near[slot], pick - (ends[slot] - self._counts[near[slot]])]
         inv = np.linalg.inv(here)
-        old = old @ inv[:3, :3].T + inv[:3, 3]
+        old = (old + self._origin) @ inv[:3, :3].T + inv[:3, 3]
         return np.concatenate([np.asarray(cur, dtype=np.float32), old.astype(np.float32)])
 
     def record(self, points: np.ndarray, ego: np.ndarray, pose: np.ndarray | None) -> None:
@@ -122,15 +126,27 @@ class TrackMemory:
         if not len(points):
             return
         e = np.asarray(ego, dtype=np.float64)
+        if self._points is None:
+            self._points = np.zeros((MEMORY_FRAMES, FRAME_POINTS, 3), np.float32)
+            self._origin = e[:3, 3].copy()
         if len(points) > FRAME_POINTS:
             points = points[self.rng.choice(len(points), FRAME_POINTS, replace=False)]
-        self._points.append(np.asarray(points, dtype=np.float64) @ e[:3, :3].T + e[:3, 3])
-        self._egos.append(e[:3, 3].copy())
+        slot = self._frames % MEMORY_FRAMES
+        world = np.asarray(points, dtype=np.float64) @ e[:3, :3].T + (e[:3, 3] - self._origin)
+        self._points[slot, :len(world)] = world
+        self._counts[slot] = len(world)
+        self._egos[slot] = e[:3, 3]
+        self._frames += 1
         self._ego_lo = np.minimum(self._ego_lo, e[:3, 3])
         self._ego_hi = np.maximum(self._ego_hi, e[:3, 3])
         if pose is not None and np.all(np.isfinite(pose)):
-            self._centres.append((e[:2, :2] @ np.asarray(pose[:2], dtype=np.float64))
-                                 + e[:2, 3])
+            self._centres[self._n_centres % MEMORY_FRAMES] = \
+                e[:2, :2] @ np.asarray(pose[:2], dtype=np.float64) + e[:2, 3]
+            self._n_centres += 1
+            if self._n_centres >= MIN_DETECTIONS:
+                c = self._centres[:min(self._n_centres, MEMORY_FRAMES)]
+                d = c - np.median(c, axis=0)
+                self._in_circle = bool((np.einsum("ij,ij->i", d, d) <= PARK_RADIUS ** 2).all())
 
 
 def memory_would_feed(poses: np.ndarray, egos, has_points: np.ndarray, n_max: int) -> bool:
