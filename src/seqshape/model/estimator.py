@@ -767,7 +767,8 @@ class Estimator:
         remember = self._track_memory != "none" and ego_poses is not None
         given = points
         if remember:
-            points = self._with_memory(states, points, ego_poses)
+            egos = [_ego_pose(ego_poses, i) for i in range(len(points))]
+            points = self._with_memory(states, points, egos)
         frames, counts = self._frames(states, points)
         scale = self._scales(states, frames, sizes, classes)
         dts = self._dts(states, timestamps) if self.model.motion else None
@@ -796,26 +797,26 @@ class Estimator:
         if self.smoothing == "causal":
             self._smooth(result, states, ego_poses, timestamps)
         if remember:
-            self._remember(track_ids, states, given, result, ego_poses)
+            self._remember(track_ids, states, given, result, egos)
         return result
 
     def _with_memory(self, states: list[_TrackState], points: list[np.ndarray],
-                     ego_poses: Sequence) -> list[np.ndarray]:
+                     egos: list[np.ndarray | None]) -> list[np.ndarray]:
         """Each track's frame, with its memory mixed in where it applies
-        (:meth:`~seqshape.model.track_memory.TrackMemory.frame_input`)."""
+        (:meth:`~seqshape.model.track_memory.TrackMemory.frame_input`); ``egos[i]`` track
+        i's ego pose or None."""
         out = []
-        for i, (st, pts) in enumerate(zip(states, points, strict=True)):
-            ego = _ego_pose(ego_poses, i)
+        for st, pts, ego in zip(states, points, egos, strict=True):
             mixed = None if ego is None or st.memory is None else \
                 st.memory.frame_input(pts, ego, self.max_points)
             out.append(pts if mixed is None else mixed)
         return out
 
     def _remember(self, track_ids: list[str], states: list[_TrackState],
-                  given: list[np.ndarray], result: list[Estimate], ego_poses: Sequence) -> None:
+                  given: list[np.ndarray], result: list[Estimate],
+                  egos: list[np.ndarray | None]) -> None:
         """Store each track's frame as given and its estimate's position in its memory."""
-        for i, (st, est) in enumerate(zip(states, result, strict=True)):
-            ego = _ego_pose(ego_poses, i)
+        for i, (st, est, ego) in enumerate(zip(states, result, egos, strict=True)):
             if ego is None:
                 continue
             if st.memory is None:
