@@ -220,3 +220,16 @@ def test_evaluate_refuses_the_memory_offline():
     with pytest.raises(ConfigError, match="track-memory"):
         EvaluateConfig(track_memory="sometimes")
     assert EvaluateConfig(offline=True).track_memory == "auto"
+
+
+def test_an_identity_switch_ends_the_memory():
+    """A tracker hands another vehicle (3 m away) the same id: its estimates leave the parked
+    circle, and no earlier points of the first vehicle are fed to it."""
+    n = tm.MIN_DETECTIONS + 4
+    frames, egos = _drive_by(n)
+    centres = [(20.0, 6.0)] * (n - 2) + [(23.0, 6.0)]
+    mem = _memory_after(frames[:-1], egos[:-1], centres)
+    assert mem.frame_input(frames[-1], egos[-1], 64) is None
+    # and it stays off while the first vehicle's positions are in the memory
+    mem.record(frames[-1], egos[-1], np.array([23.0 - egos[-1][0, 3], 6.0, -0.9, 0.0]))
+    assert mem.frame_input(frames[-1], egos[-1], 64) is None
