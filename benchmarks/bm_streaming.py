@@ -32,6 +32,10 @@ tree's side by side: two worker processes (this script with ``--worker``, one im
 tree), the repeats alternating between them, one process timing at a time; the table gains a
 ``tree`` column (``old`` / ``new``) and the ratios are to the old copy's first backend.
 
+``--drive-by`` adds the default estimator given ego poses, the cars parked and the ego
+driving past them at 7 m/s, with its track memory of parked vehicles (the default) and without
+(``track_memory="none"``): what the memory costs a step.
+
 ``--agreement`` adds a table of each backend's agreement with the reference on partial car
 views (``engine.car_stream``; medians and 90th percentiles of the worst shape point, the centre
 and the yaw), beside the reference's own deviation under 1 cm of noise on the points, the
@@ -39,7 +43,7 @@ bound ``"onnx-int8"`` is held to (``engine.INT8_NOISE``).
 
 Run: ``python benchmarks/bm_streaming.py [--configs default no-refiner causal | --backends torch
 onnx onnx-int8] [--threads 1] [--busy 0] [--weights sequential baseline] [--repeats 5] [--seed 0]
-[--compare-with OLD_SRC] [--agreement]``; issue 47's table: ``python benchmarks/bm_streaming.py
+[--compare-with OLD_SRC] [--agreement] [--drive-by]``; issue 47's table: ``python benchmarks/bm_streaming.py
 --repeats 3 --compare-with OLD/src``.
 """
 
@@ -288,6 +292,9 @@ def main() -> None:
     ap.add_argument("--agreement", action="store_true",
                     help="also print each backend's agreement with the reference on partial car "
                          "views, beside the reference's own under 1 cm of noise on the points")
+    ap.add_argument("--drive-by", action="store_true",
+                    help="also time the default estimator given ego poses, parked cars passed "
+                         "by the ego, with and without its track memory")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -318,6 +325,49 @@ def main() -> None:
           + ("" if args.compare_with is None else " of the old tree"))
     if args.agreement:
         print_agreement(args)
+    if args.drive_by:
+        print_drive_by(args)
+
+
+def drive_by(n_tracks: int, n_frames: int, seed: int = 0, step: float = 0.7
+             ) -> tuple[list[list[np.ndarray]], list[np.ndarray]]:
+    """:func:`make_frames`' parked cars seen from an ego driving along x by ``step`` m a frame
+    (7 m/s at 10 Hz): each frame's points in that frame's sensor frame, and its ego pose."""
+    frames, egos = [], []
+    for t, row in enumerate(make_frames(n_tracks, n_frames, seed=seed)):
+        ego = np.eye(4)
+        ego[0, 3] = step * t
+        frames.append([p - np.float32([step * t, 0.0, 0.0]) for p in row])
+        egos.append(ego)
+    return frames, egos
+
+
+def print_drive_by(args) -> None:
+    """``--drive-by``: the default estimator given ego poses, with and without the track memory
+    of parked vehicles (``Estimator(track_memory=...)``, docs/model.md "Track memory"), on
+    ``--tracks`` parked cars passed by the ego; repeats interleaved; updates/s."""
+    frames, egos = drive_by(args.tracks, max(args.frames, 10), seed=args.seed)
+    ids = [f"track{i}" for i in range(args.tracks)]
+    ests = {m: Estimator.load(args.weights[0], threads=args.threads, track_memory=m)
+            for m in ("parked", "none")}
+    work = args.tracks * len(frames)
+    rates: dict[str, list[float]] = {m: [] for m in ests}
+    for _ in range(args.repeats):
+        for m, est in ests.items():
+            est.reset()
+            rates[m].append(work / time_it(lambda est=est: [
+                est.step(ids, f, ego_poses=[e] * len(ids)) for f, e in zip(frames, egos,
+                                                                           strict=True)],
+                1, warmup=0).runs[0])
+    fed = sum(st.memory is not None and st.memory.parked(egos[-1][:3, 3])
+              for st in ests["parked"]._states.values())
+    ref = statistics.median(rates["none"])
+    print(f"\ndrive-by: {args.tracks} parked cars passed at 7 m/s, ego poses given, "
+          f"{len(frames)} steps; {fed} tracks fed by the memory at the end")
+    print_table(("track_memory", "updates/s, median", "min", "max", "x none"),
+                [(m, f"{statistics.median(r):.0f}", f"{min(r):.0f}", f"{max(r):.0f}",
+                  f"{statistics.median(r) / ref:.2f}") for m, r in rates.items()],
+                align="lrrrr")
 
 
 def agreement_rows(spec: str, backends: list[str] | None, args) -> list[tuple]:
