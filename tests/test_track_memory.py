@@ -233,3 +233,30 @@ def test_an_identity_switch_ends_the_memory():
     # and it stays off while the first vehicle's positions are in the memory
     mem.record(frames[-1], egos[-1], np.array([23.0 - egos[-1][0, 3], 6.0, -0.9, 0.0]))
     assert mem.frame_input(frames[-1], egos[-1], 64) is None
+
+
+def test_a_refused_step_leaves_the_memory_as_it_was(monkeypatch):
+    """A step refused for lack of memory (the engine's allocation failed) draws nothing from
+    the track memory: the step after it gives what it would have given without the refusal."""
+    pytest.importorskip("onnxruntime")
+    from onnxruntime.capi.onnxruntime_pybind11_state import Fail
+
+    net = _net()
+    frames, egos = _drive_by(9)
+    a, b = (Estimator(net, backend="onnx", threads=1, track_memory="parked") for _ in range(2))
+    for f, e in zip(frames[:-1], egos[:-1], strict=True):
+        a.step(["a"], [f], ego_poses=[e])
+        b.step(["a"], [f], ego_poses=[e])
+    assert a._states["a"].memory.parked(egos[-1][:3, 3])  # the last frame is fed
+
+    def fail(inputs):
+        raise Fail("[ONNXRuntimeError] : 1 : FAIL : BFCArena::AllocateRawInternal Failed to "
+                   "allocate memory for requested buffer of size 8589934592")
+
+    with monkeypatch.context() as m:
+        m.setattr(a._engine, "_run", fail)
+        with pytest.raises(ConfigError, match="not enough memory"):
+            a.step(["a"], [frames[-1]], ego_poses=[egos[-1]])
+    got = a.step(["a"], [frames[-1]], ego_poses=[egos[-1]])[0]
+    want = b.step(["a"], [frames[-1]], ego_poses=[egos[-1]])[0]
+    np.testing.assert_array_equal(got.pose, want.pose)

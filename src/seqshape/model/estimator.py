@@ -768,6 +768,8 @@ class Estimator:
         given = points
         if remember:
             egos = [_ego_pose(ego_poses, i) for i in range(len(points))]
+            drawn = [None if st.memory is None else st.memory.rng.bit_generator.state
+                     for st in states]  # restored if the step is refused
             points = self._with_memory(states, points, egos)
         frames, counts = self._frames(states, points)
         scale = self._scales(states, frames, sizes, classes)
@@ -781,6 +783,10 @@ class Estimator:
             except ConfigError:  # a step too large for the memory left: refused, no change
                 for st, (length, last_time) in zip(states, kept, strict=True):
                     st.length, st.last_time = length, last_time
+                if remember:
+                    for st, state in zip(states, drawn, strict=True):
+                        if state is not None:
+                            st.memory.rng.bit_generator.state = state
                 for t in fresh:
                     self._states.pop(t, None)
                 raise
