@@ -253,9 +253,8 @@ def build_estimators(checkpoint: str, baseline: str, dataset, cfg: EvaluateConfi
                   "baseline": load_estimator(baseline, "baseline", cfg.backend, cfg.max_points,
                                              base_refiner)}
     estimators["sequential"].smoothing = cfg.smoothing
-    if cfg.track_memory != "auto":
+    if cfg.track_memory != "auto":  # the per-frame baseline's default is none
         estimators["sequential"].track_memory = cfg.track_memory
-    estimators["baseline"].track_memory = "none"  # per frame
     for est in estimators.values():
         set_size_scale(est, cfg.size_scale, dataset, cfg.max_tracks, cfg.hints)
     if cfg.offline:

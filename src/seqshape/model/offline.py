@@ -249,8 +249,8 @@ def estimate_tracks(estimator, tracks: Sequence[Mapping], mode: str = "offline",
     # a track the memory feeds: its input depends on its own estimates, so it runs step by
     # step (Estimator.step, on the estimator's backend), the first pass of the offline mode
     fed = _memory_fed(estimator, cfg, mode, preps)
-    stepped = dict(zip(fed, _stepped(estimator, [args[i] for i in fed], [ks[i] for i in fed],
-                                     mode == "online"), strict=True))
+    stepped = dict(zip(fed, _stepped(estimator, [preps[i] for i in fed], mode == "online"),
+                       strict=True))
     for i, ests in stepped.items():  # offline: its positions; the shapes stay the first pass's
         preps[i].passes["memory"] = _unflipped(ests)
     offline = [p for p in live if mode == "offline" and model.recurrent and p.counts.any()]
@@ -290,8 +290,7 @@ def _memory_fed(estimator, cfg: OfflineConfig, mode: str, preps: list) -> list[i
         return []
     smoothed = mode == "online" and getattr(estimator, "smoothing", "none") != "none"
     return [i for i, p in enumerate(preps) if p.frames and p.egos is not None and (
-        smoothed or memory_would_feed(p.passes["online"]["pose"], p.egos, p.counts > 0,
-                                      estimator.max_points))]
+        smoothed or memory_would_feed(p.passes["online"]["pose"], p.egos, p.counts > 0))]
 
 
 def _unflipped(estimates: list[Estimate]) -> dict:
@@ -303,52 +302,36 @@ def _unflipped(estimates: list[Estimate]) -> dict:
     return {"complete": np.stack([e.complete for e in estimates]), "pose": pose}
 
 
-def _stepped(estimator, args: list[dict], scales: Sequence[float] | None = None,
-             smoothing: bool = True) -> list[list[Estimate]]:
-    """Tracks run through :meth:`Estimator.step <seqshape.model.Estimator.step>` frame by
-    frame (``track_memory``: a frame's input depends on the track's estimates before it), on
-    a copy of ``estimator`` with states of its own; tracks whose ids differ share each step.
-    With ``scales`` (one per track) the tracks are stepped in the world of
-    :attr:`~seqshape.model.Estimator.size_scale` (inputs times the track's scale) and the
-    estimates stay there; without ``smoothing`` the copy does not smooth (an offline first
-    pass)."""
+def _stepped(estimator, tracks: list[_Track], smoothing: bool = True) -> list[list[Estimate]]:
+    """Prepared tracks run through :meth:`Estimator.step <seqshape.model.Estimator.step>`
+    frame by frame (``track_memory``: a frame's input depends on the track's estimates before
+    it), on a copy of ``estimator`` with states of its own, in the world of
+    :attr:`~seqshape.model.Estimator.size_scale` the tracks were prepared in (the estimates
+    stay there); tracks whose ids differ share each step. Without ``smoothing`` the copy does
+    not smooth (an offline first pass)."""
     twin = copy.copy(estimator)
+    twin.size_scale = 1.0
     if not smoothing:
         twin.smoothing = "none"
-    if scales is not None:
-        twin.size_scale = 1.0
-        args = [dict(a, points=[np.asarray(p, dtype=np.float32) * np.float32(k)
-                                for p in a["points"]],
-                     ego_poses=[None if e is None else scale_ego(e, k) for e in a["ego_poses"]],
-                     size=scale_size(a["size"], k)) if k != 1.0 else a
-                for a, k in zip(args, scales, strict=True)]
-    out: list[list[Estimate] | None] = [None] * len(args)
-    pending = list(range(len(args)))
+    out: list[list[Estimate]] = [[] for _ in tracks]
+    pending = list(range(len(tracks)))
     while pending:
         group, ids = [], set()
         for i in pending:
-            tid = str(args[i]["track_id"])
-            if tid not in ids:
+            if str(tracks[i].track_id) not in ids:
                 group.append(i)
-                ids.add(tid)
+                ids.add(str(tracks[i].track_id))
         pending = [i for i in pending if i not in set(group)]
         twin._states = {}
-        pts = {i: [check_points(p, f"points[{t}] (track {args[i]['track_id']!r})")
-                   for t, p in enumerate(args[i]["points"])] for i in group}
-        n = {i: len(pts[i]) for i in group}
-        egos = {i: _ego_list(args[i]["ego_poses"], n[i]) for i in group}
-        times = {i: _times(args[i]["timestamps"], n[i]) for i in group}
-        for i in group:
-            out[i] = []
-        for t in range(max(n.values())):
-            live = [i for i in group if t < n[i]]
-            res = twin.step([str(args[i]["track_id"]) for i in live], [pts[i][t] for i in live],
-                            sizes=[args[i]["size"] for i in live],
-                            classes=[args[i]["cls"] for i in live],
-                            ego_poses=[None if egos[i] is None else egos[i][t] for i in live],
-                            timestamps=[None if times[i] is None else float(times[i][t])
-                                        for i in live])
-            for i, e in zip(live, res, strict=True):
+        for t in range(max(len(tracks[i].given) for i in group)):
+            live = [tracks[i] for i in group if t < len(tracks[i].given)]
+            res = twin.step([str(p.track_id) for p in live],
+                            [p.given[t] * np.float32(p.world) for p in live],
+                            sizes=[p.size for p in live], classes=[p.cls for p in live],
+                            ego_poses=[p.egos[t] for p in live],
+                            timestamps=[None if p.times is None else float(p.times[t])
+                                        for p in live])
+            for i, e in zip([i for i in group if t < len(tracks[i].given)], res, strict=True):
                 out[i].append(e)
     return out
 
@@ -367,6 +350,8 @@ class _Track:
     motion: dict  # (1, T) motion inputs of a motion_input model
     size: object
     cls: str | None
+    given: list[np.ndarray]  # the checked frames before the subsets (the track memory's input)
+    world: float  # the world scale of frames, egos and size (Estimator.size_scale; not given)
     passes: dict = field(default_factory=dict)
 
 
@@ -397,7 +382,8 @@ def _prepare(estimator, args: dict, k: float = 1.0) -> _Track:
     """The checked inputs of one track (:func:`estimate_track`'s arguments), in a world
     scaled by ``k`` (:attr:`Estimator.size_scale <seqshape.model.Estimator.size_scale>`)."""
     track_id = args["track_id"]
-    frames, raw = _frames(estimator, args["points"], track_id)
+    frames, given = _frames(estimator, args["points"], track_id)
+    raw = np.array([len(f) for f in given], dtype=np.int64)
     n = len(frames)
     egos = _ego_list(args["ego_poses"], n) if n else None
     times = _times(args["timestamps"], n) if n else None
@@ -411,7 +397,7 @@ def _prepare(estimator, args: dict, k: float = 1.0) -> _Track:
     scales = _scales(model, frames, size, args["cls"]) if n else None
     return _Track(track_id, frames, raw, egos, times,
                   np.array([len(f) for f in frames], dtype=np.int64), scales,
-                  _motion(estimator, raw, times) if n else {}, size, args["cls"])
+                  _motion(estimator, raw, times) if n else {}, size, args["cls"], given, k)
 
 
 def _backward_pass(estimator, p: _Track) -> _Pass:
@@ -542,18 +528,18 @@ def _smooth(poses: np.ndarray, weights: np.ndarray, egos, times: np.ndarray | No
 
 
 def _frames(estimator, points: Sequence[np.ndarray], track_id: str
-            ) -> tuple[list[np.ndarray], np.ndarray]:
+            ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """The frames as the network gets them: finite rows, at most N (random subsets drawn
     with the estimator's per-track generator, in frame order, as :meth:`Estimator.step`),
-    and the finite points per frame before that subset (T,)."""
+    and the checked frames before that subset."""
     n_max = estimator.max_points
     rng = np.random.default_rng([estimator.seed, zlib.crc32(str(track_id).encode("utf-8"))])
-    out, raw = [], []
+    out, given = [], []
     for i, pts in enumerate(points):
         pts = check_points(pts, f"points[{i}] (track {track_id!r})")  # as Estimator.step
-        raw.append(len(pts))
+        given.append(pts)
         out.append(pts if len(pts) <= n_max else resample_frame(pts, n_max, rng)[0])
-    return out, np.asarray(raw, dtype=np.int64)
+    return out, given
 
 
 def _ego_list(ego_poses: Sequence | None, n: int) -> list[np.ndarray | None] | None:

@@ -97,6 +97,20 @@ class TrackMemory:
         lo, hi = np.minimum(self._ego_lo, here), np.maximum(self._ego_hi, here)
         return bool(np.linalg.norm(hi - lo) >= MIN_EGO_TRAVEL)
 
+    def feeds(self, ego: np.ndarray) -> bool:
+        """Whether a frame with points taken at ego pose ``ego`` (4, 4) would be fed the
+        memory (:meth:`parked`, and a stored frame within :data:`MEMORY_REACH`)."""
+        return self._near(np.asarray(ego, dtype=np.float64)) is not None
+
+    def _near(self, here: np.ndarray) -> np.ndarray | None:
+        """The slots of the stored frames that feed a frame taken at ego pose ``here``, or None
+        when the memory does not feed it."""
+        if not self.parked(here[:3, 3]):
+            return None
+        near = np.flatnonzero((self._counts > 0) & (np.linalg.norm(
+            self._egos - here[:3, 3], axis=1) <= MEMORY_REACH))
+        return near if len(near) else None
+
     def frame_input(self, points: np.ndarray, ego: np.ndarray, n_max: int
                     ) -> np.ndarray | None:
         """The network's input for a frame of ``points`` (sensor frame, ``ego`` its pose in
@@ -104,11 +118,8 @@ class TrackMemory:
         when the memory does not apply (:meth:`parked` is False, an empty frame, or no stored
         frame within :data:`MEMORY_REACH`)."""
         here = np.asarray(ego, dtype=np.float64)
-        if not len(points) or not self.parked(here[:3, 3]):
-            return None
-        near = np.flatnonzero((self._counts > 0) & (np.linalg.norm(
-            self._egos - here[:3, 3], axis=1) <= MEMORY_REACH))
-        if not len(near):
+        near = self._near(here) if len(points) else None
+        if near is None:
             return None
         rng = self.rng
         n_cur = min(len(points), max(1, int(n_max * CURRENT_SHARE)))
@@ -154,17 +165,17 @@ class TrackMemory:
                 self._in_circle = bool((np.einsum("ij,ij->i", d, d) <= PARK_RADIUS ** 2).all())
 
 
-def memory_would_feed(poses: np.ndarray, egos, has_points: np.ndarray, n_max: int) -> bool:
+def memory_would_feed(poses: np.ndarray, egos, has_points: np.ndarray) -> bool:
     """Whether a track's memory would feed any of its frames, given its estimates ``poses``
     (T, 4) without the memory, ``egos`` (T entries, (4, 4) or None) and which frames have
-    points: the memory's own rules replayed on one-point frames (until it first feeds a frame
-    the estimates with the memory are these)."""
+    points: the memory's own rule (:meth:`TrackMemory.feeds`) replayed on one-point frames
+    (until it first feeds a frame the estimates with the memory are these)."""
     mem = TrackMemory(np.random.default_rng(0))
     one = np.zeros((1, 3), np.float32)
     for pose, ego, has in zip(poses, egos, has_points, strict=True):
         if not has or ego is None:
             continue
-        if mem.frame_input(one, ego, n_max) is not None:
+        if mem.feeds(ego):
             return True
         mem.record(one, ego, pose)
     return False
